@@ -1,0 +1,52 @@
+"""BOP dataset folders, models_info and results CSV: readers and atomic writers."""
+
+from sc6d_jax.bop._dataset import BopDataset, check_scene_files, load_model_points, load_models_info, model_path
+from sc6d_jax.bop._formats import (
+    BopFormatError,
+    Camera,
+    GtInfo,
+    GtPose,
+    ModelInfo,
+    Target,
+    parse_models_info,
+    parse_scene_camera,
+    parse_scene_gt,
+    parse_scene_gt_info,
+    parse_targets,
+    read_json,
+    write_models_info,
+    write_scene_camera,
+    write_scene_gt,
+    write_scene_gt_info,
+    write_targets,
+)
+from sc6d_jax.bop._results import PoseEstimate, read_results_csv, results_name_ok, write_results_csv
+
+__all__ = [
+    "BopDataset",
+    "BopFormatError",
+    "Camera",
+    "GtInfo",
+    "GtPose",
+    "ModelInfo",
+    "PoseEstimate",
+    "Target",
+    "check_scene_files",
+    "load_model_points",
+    "load_models_info",
+    "model_path",
+    "parse_models_info",
+    "parse_scene_camera",
+    "parse_scene_gt",
+    "parse_scene_gt_info",
+    "parse_targets",
+    "read_json",
+    "read_results_csv",
+    "results_name_ok",
+    "write_models_info",
+    "write_results_csv",
+    "write_scene_camera",
+    "write_scene_gt",
+    "write_scene_gt_info",
+    "write_targets",
+]
