@@ -1,0 +1,80 @@
+"""BOP19 pose-error metrics (VSD, MSSD, MSPD, ADD, ADI, RE, TE) and average recall, as the BOP toolkit.
+
+Public surface: the pose errors ``re``, ``te``, ``add``, ``adi``, ``mssd``, ``mspd``, ``vsd``
+(the toolkit's arguments, mm, numpy in, float out); ``symmetry_transformations`` and
+``symmetry_coverage``; ``evaluate_bop19`` (a BOP dataset + estimates -> scores with the toolkit's
+key names), ``evaluate_images`` / ``compute_errors`` / ``score_errors`` (in-memory pieces);
+``VsdRenderer`` (depth for VSD in the toolkit's pixel convention); the threshold grids.
+The ``sc6d eval`` command lives in ``sc6d_jax.metrics.cli``.
+"""
+
+from sc6d_jax.metrics._bop19 import (
+    MAX_SYM_DISC_STEP,
+    MSPD_THRESHOLDS,
+    MSSD_THRESHOLDS,
+    VISIB_GT_MIN,
+    VSD_DELTA,
+    VSD_TAUS,
+    VSD_THRESHOLDS,
+    EstimateErrors,
+    EvalImage,
+    GroundTruth,
+    ObjectModel,
+    average_time_per_image,
+    compute_errors,
+    evaluate_images,
+    make_object_model,
+    score_errors,
+)
+from sc6d_jax.metrics._evaluate import evaluate_bop19, load_eval_images, load_object_models
+from sc6d_jax.metrics._pose_error import (
+    add,
+    adi,
+    depth_to_distance,
+    mspd,
+    mssd,
+    overlapping_sphere_projections,
+    project_pts,
+    re,
+    te,
+    transform_pts,
+    vsd,
+)
+from sc6d_jax.metrics._symmetry import symmetry_coverage, symmetry_transformations
+from sc6d_jax.metrics._vsd_renderer import VsdRenderer
+
+__all__ = [
+    "MAX_SYM_DISC_STEP",
+    "MSPD_THRESHOLDS",
+    "MSSD_THRESHOLDS",
+    "VISIB_GT_MIN",
+    "VSD_DELTA",
+    "VSD_TAUS",
+    "VSD_THRESHOLDS",
+    "EstimateErrors",
+    "EvalImage",
+    "GroundTruth",
+    "ObjectModel",
+    "VsdRenderer",
+    "add",
+    "adi",
+    "average_time_per_image",
+    "compute_errors",
+    "depth_to_distance",
+    "evaluate_bop19",
+    "evaluate_images",
+    "load_eval_images",
+    "load_object_models",
+    "make_object_model",
+    "mspd",
+    "mssd",
+    "overlapping_sphere_projections",
+    "project_pts",
+    "re",
+    "score_errors",
+    "symmetry_coverage",
+    "symmetry_transformations",
+    "te",
+    "transform_pts",
+    "vsd",
+]
