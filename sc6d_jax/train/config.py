@@ -1,0 +1,294 @@
+"""Typed training configuration: :class:`TrainConfig` and its presets.
+
+A :class:`TrainConfig` is a frozen dataclass holding everything that decides the trained
+parameters: the network (:class:`sc6d_jax.model.ModelConfig`), the losses
+(:class:`sc6d_jax.model.LossConfig`), the crop stream (:class:`StreamSettings`), the optimiser
+(:class:`OptimConfig`), the number of steps and the seed.  It is printed at the start of a run,
+saved as ``config.json`` in the run directory and in every checkpoint, and rebuilt from that JSON
+with :meth:`TrainConfig.from_json`.
+
+Fields that depend on the models folder (``model.n_objects``, ``stream.obj_ids``, ``z_range``)
+may be left unset in a preset; :func:`sc6d_jax.train.train` resolves them from the crop stream
+before the first step, and the saved config holds the resolved values.
+
+Presets (:func:`preset`):
+
+- ``paper``: the authors' settings for one GPU: 256x256 crops, ResNet34, Q = 5000 negatives,
+  K = 1000 depth bins, batch 64, AdamW 5e-4 -> 1e-5 cosine, weight decay 1e-4.
+- ``cpu``: 64x64 crops, batch 32, a small residual backbone; sized so that one hour on two CPU
+  cores (about 3 steps/s) gives a useful model for the built-in objects.
+- ``tiny``: 48x48 crops, 4 residual blocks of width 16, batch 16, Q = 1000: trains in under a
+  minute, for tests and smoke runs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+__all__ = [
+    "OptimConfig",
+    "PRESETS",
+    "RUN_ONLY_FIELDS",
+    "StreamSettings",
+    "TrainConfig",
+    "config_differences",
+    "preset",
+]
+
+#: Fields that steer a run but do not change the trained parameters; a resumed run may change them.
+RUN_ONLY_FIELDS = frozenset({"checkpoint_every", "keep_checkpoints", "log_every"})
+
+
+@dataclass(frozen=True)
+class StreamSettings:
+    """Settings of the training crop stream (the crop size is ``TrainConfig.model.crop_size``).
+
+    Attributes:
+        batch_size: global batch size (split over devices and processes).
+        obj_ids: BOP ids of the objects to train on; ``None`` = every model in the folder
+            (resolved to the actual tuple when training starts).
+        augment: colour augmentation and random in-plane 90-degree rotations.
+    """
+
+    batch_size: int = 32
+    obj_ids: tuple[int, ...] | None = None
+    augment: bool = True
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.batch_size, int) or self.batch_size < 1:
+            raise ValueError(f"stream.batch_size must be a positive integer, got {self.batch_size!r}")
+        if self.obj_ids is not None:
+            ids = tuple(self.obj_ids)
+            if not ids or any(not isinstance(i, int) or i < 0 for i in ids):
+                raise ValueError(f"stream.obj_ids must be non-empty non-negative integers, got {self.obj_ids!r}")
+            if len(set(ids)) != len(ids):
+                raise ValueError(f"stream.obj_ids has duplicates: {self.obj_ids!r}")
+            object.__setattr__(self, "obj_ids", ids)
+
+
+@dataclass(frozen=True)
+class OptimConfig:
+    """AdamW with a cosine learning-rate decay (optionally after a linear warm-up).
+
+    Attributes:
+        lr: peak learning rate (after warm-up).
+        lr_end: final learning rate at the last step.
+        weight_decay: decoupled weight decay of AdamW (applied to every parameter).
+        warmup_steps: linear warm-up from 0 to ``lr`` (0 = none).
+        b1, b2, eps: Adam moments.
+        grad_clip: clip the global gradient norm to this value (``None`` = no clipping).
+    """
+
+    lr: float = 5e-4
+    lr_end: float = 1e-5
+    weight_decay: float = 1e-4
+    warmup_steps: int = 0
+    b1: float = 0.9
+    b2: float = 0.999
+    eps: float = 1e-8
+    grad_clip: float | None = None
+
+    def __post_init__(self) -> None:
+        if not (self.lr > 0 and self.lr_end >= 0):
+            raise ValueError(f"optim.lr must be > 0 and optim.lr_end >= 0, got {self.lr}, {self.lr_end}")
+        if self.lr_end > self.lr:
+            raise ValueError(f"optim.lr_end ({self.lr_end}) is larger than optim.lr ({self.lr})")
+        if self.weight_decay < 0:
+            raise ValueError(f"optim.weight_decay must be >= 0, got {self.weight_decay}")
+        if not isinstance(self.warmup_steps, int) or self.warmup_steps < 0:
+            raise ValueError(f"optim.warmup_steps must be a non-negative integer, got {self.warmup_steps!r}")
+        if self.grad_clip is not None and not self.grad_clip > 0:
+            raise ValueError(f"optim.grad_clip must be > 0 or None, got {self.grad_clip}")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything that decides the trained parameters (plus three run-only fields).
+
+    Attributes:
+        model: network configuration (``sc6d_jax.model.ModelConfig``); ``n_objects`` and
+            ``crop_size`` are read from it.
+        loss: loss configuration (``sc6d_jax.model.LossConfig``).
+        stream: crop-stream settings.
+        optim: optimiser settings.
+        steps: number of optimiser steps (the cosine schedule spans them).
+        seed: seeds the initial parameters, the per-step keys and the crop stream.
+        z_range: ``(d_lo, d_hi)`` range of delta_z for the depth bins; ``None`` = measured on the
+            crop stream (``sc6d_jax.data.delta_z_range``) when training starts.
+        preset: name of the preset the config came from (informative).
+        checkpoint_every: write a checkpoint every this many steps (and at the end). Run-only.
+        keep_checkpoints: how many of the newest checkpoints to keep. Run-only.
+        log_every: metrics.jsonl / progress-bar interval in steps. Run-only.
+    """
+
+    model: Any
+    loss: Any
+    stream: StreamSettings = field(default_factory=StreamSettings)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    steps: int = 10_000
+    seed: int = 0
+    z_range: tuple[float, float] | None = None
+    preset: str = "custom"
+    checkpoint_every: int = 500
+    keep_checkpoints: int = 3
+    log_every: int = 10
+
+    def __post_init__(self) -> None:
+        for name in ("model", "loss", "stream", "optim"):
+            if not dataclasses.is_dataclass(getattr(self, name)):
+                raise ValueError(f"TrainConfig.{name} must be a dataclass instance, got {getattr(self, name)!r}")
+        for name in ("n_objects", "crop_size"):
+            if not hasattr(self.model, name):
+                raise ValueError(f"TrainConfig.model has no field {name!r}")
+        if not isinstance(self.steps, int) or self.steps < 1:
+            raise ValueError(f"steps must be a positive integer, got {self.steps!r}")
+        if not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
+        for name in ("checkpoint_every", "keep_checkpoints", "log_every"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        if self.z_range is not None:
+            lo, hi = (float(x) for x in self.z_range)
+            if not (0 < lo < hi):
+                raise ValueError(f"z_range must satisfy 0 < d_lo < d_hi, got {self.z_range!r}")
+            object.__setattr__(self, "z_range", (lo, hi))
+        if self.stream.obj_ids is not None and len(self.stream.obj_ids) != self.model.n_objects:
+            raise ValueError(
+                f"stream.obj_ids has {len(self.stream.obj_ids)} objects but model.n_objects is "
+                f"{self.model.n_objects}"
+            )
+
+    # -- conversions -------------------------------------------------------------------------
+    def replace(self, **changes: Any) -> TrainConfig:
+        """A copy with some fields changed (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able dict (tuples become lists)."""
+        return _jsonable(dataclasses.asdict(self))
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2) + "\n"
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
+        """Rebuild a config from :meth:`to_dict` output; unknown keys raise ValueError."""
+        from sc6d_jax.model import LossConfig, ModelConfig
+
+        if not isinstance(d, dict):
+            raise ValueError(f"a TrainConfig must be a JSON object, got {type(d).__name__}")
+        nested = {"model": ModelConfig, "loss": LossConfig, "stream": StreamSettings, "optim": OptimConfig}
+        kwargs = _check_keys(cls, d, "TrainConfig")
+        for name, sub in nested.items():
+            if name in kwargs:
+                if not isinstance(kwargs[name], dict):
+                    raise ValueError(f"TrainConfig.{name} must be a JSON object")
+                kwargs[name] = sub(**_check_keys(sub, kwargs[name], f"TrainConfig.{name}"))
+        for name in ("model", "loss"):
+            if name not in kwargs:
+                raise ValueError(f"TrainConfig JSON lacks the {name!r} section")
+        return cls(**kwargs)
+
+    @classmethod
+    def from_json(cls, text: str) -> TrainConfig:
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"config is not valid JSON: {exc}") from exc
+        return cls.from_dict(d)
+
+    @property
+    def resolved(self) -> bool:
+        """Whether the data-dependent fields (obj_ids, z_range) are filled in."""
+        return self.stream.obj_ids is not None and self.z_range is not None
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if hasattr(x, "item") and callable(x.item):  # numpy scalars
+        return x.item()
+    return x
+
+
+def _tuplify(x: Any) -> Any:
+    if isinstance(x, list):
+        return tuple(_tuplify(v) for v in x)
+    return x
+
+
+def _check_keys(cls: type, d: dict[str, Any], where: str) -> dict[str, Any]:
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(d) - names)
+    if unknown:
+        raise ValueError(f"{where} has unknown field(s) {unknown}; known: {sorted(names)}")
+    return {k: _tuplify(v) for k, v in d.items()}
+
+
+def config_differences(a: dict[str, Any], b: dict[str, Any], ignore: frozenset[str] = RUN_ONLY_FIELDS) -> list[str]:
+    """Dotted names of the fields where two config dicts differ (top-level ``ignore`` skipped)."""
+    out: list[str] = []
+
+    def walk(x: Any, y: Any, prefix: str) -> None:
+        if isinstance(x, dict) and isinstance(y, dict):
+            for k in sorted(set(x) | set(y)):
+                if not prefix and k in ignore:
+                    continue
+                walk(x.get(k, "<missing>"), y.get(k, "<missing>"), f"{prefix}{k}.")
+        elif _jsonable(x) != _jsonable(y):
+            out.append(f"{prefix[:-1]} ({x!r} != {y!r})")
+
+    walk(a, b, "")
+    return out
+
+
+# -- presets ------------------------------------------------------------------------------------
+PRESETS: tuple[str, ...] = ("paper", "cpu", "tiny")
+
+
+def preset(name: str, **overrides: Any) -> TrainConfig:
+    """The named preset (``paper``, ``cpu`` or ``tiny``) with top-level fields overridden.
+
+    ``model.n_objects`` is a placeholder (1) until training resolves it from the models folder.
+    """
+    from sc6d_jax.model import LossConfig, ModelConfig
+
+    if name == "paper":
+        cfg = TrainConfig(
+            model=ModelConfig(n_objects=1, crop_size=256, backbone="resnet34", n_z_bins=1000),
+            loss=LossConfig(n_negatives=5000),
+            stream=StreamSettings(batch_size=64),
+            optim=OptimConfig(lr=5e-4, lr_end=1e-5, weight_decay=1e-4, warmup_steps=1000),
+            steps=200_000,
+            checkpoint_every=2000,
+            log_every=50,
+        )
+    elif name == "cpu":
+        cfg = TrainConfig(
+            model=ModelConfig(n_objects=1, crop_size=64, backbone="tiny", width=32, n_z_bins=1000),
+            loss=LossConfig(n_negatives=5000),
+            stream=StreamSettings(batch_size=32),
+            optim=OptimConfig(lr=5e-4, lr_end=1e-5, weight_decay=1e-4, warmup_steps=200),
+            steps=10_000,
+            checkpoint_every=500,
+            log_every=20,
+        )
+    elif name == "tiny":
+        cfg = TrainConfig(
+            model=ModelConfig(n_objects=1, crop_size=48, backbone="tiny", width=16, n_z_bins=64),
+            loss=LossConfig(n_negatives=1000),
+            stream=StreamSettings(batch_size=16),
+            optim=OptimConfig(lr=2e-3, lr_end=1e-5, weight_decay=1e-4, warmup_steps=0),
+            steps=800,
+            checkpoint_every=200,
+            log_every=20,
+        )
+    else:
+        raise ValueError(f"unknown preset {name!r}; available presets: {', '.join(PRESETS)}")
+    return cfg.replace(preset=name, **overrides)

@@ -1,0 +1,480 @@
+"""The training program: :func:`train` runs AdamW on crops streamed from the renderer.
+
+Read top to bottom: :func:`train` opens the crop stream at the batch index of the step it
+starts from, resolves the data-dependent config fields, checks the run directory, initialises
+(or restores) the state, then loops over one jit-compiled :func:`make_train_step` per batch,
+logging to ``metrics.jsonl`` and a tqdm bar and writing atomic checkpoints.
+
+Determinism.  Batch ``b`` of the stream depends only on ``(seed, b)``; the PRNG key of step
+``b`` is ``fold_in(base_key, b)``.  A run therefore is a pure function of its config, and a run
+killed at any moment and resumed from its last checkpoint (``resume=True``) ends with the same
+parameters, bit for bit, as an uninterrupted one on the same machine and device count.
+
+Parallelism.  The batch is sharded over a one-axis device mesh (``'data'``) spanning every
+device of every process; parameters and optimiser state are replicated; XLA inserts the
+gradient all-reduce.  With several processes (:func:`initialize_distributed`, i.e. the
+``--coordinator/--num-processes/--process-id`` options of ``sc6d train``), process ``p`` renders
+only its ``batch_size / num_processes`` rows, from a stream seeded by ``(seed, p)``; results then
+depend on the process count (not on the number of devices per process).  Process 0 writes
+config, metrics and checkpoints; the run directory must be on a filesystem all processes see.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterator, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jax.sharding import NamedSharding, PartitionSpec
+
+from sc6d_jax._io import atomic_write_json, atomic_write_text
+from sc6d_jax.train.checkpoint import (
+    checkpoint_dirs,
+    read_checkpoint,
+    read_meta,
+    save_checkpoint,
+)
+from sc6d_jax.train.config import TrainConfig, config_differences
+
+__all__ = [
+    "DataFns",
+    "ModelFns",
+    "NonFiniteLossError",
+    "initialize_distributed",
+    "make_optimizer",
+    "make_train_step",
+    "train",
+]
+
+_MESH_EXTS = (".ply", ".obj", ".stl", ".off", ".glb")
+
+
+class NonFiniteLossError(FloatingPointError):
+    """The loss or the gradient became NaN or infinite; the run stopped before saving it."""
+
+    def __init__(self, step: int, metrics: dict[str, float], last_checkpoint: Path | None):
+        self.step = step
+        self.metrics = metrics
+        self.last_checkpoint = last_checkpoint
+        kept = f"last good checkpoint kept: {last_checkpoint}" if last_checkpoint else "no checkpoint was written"
+        terms = ", ".join(f"{k}={v:.4g}" for k, v in metrics.items())
+        super().__init__(f"loss or gradient is not finite at step {step} ({terms}); run stopped; {kept}")
+
+
+class ModelFns(NamedTuple):
+    """The model functions the loop calls (defaults: :mod:`sc6d_jax.model`).
+
+    ``init(key, model_cfg) -> params``;
+    ``loss_fn(params, model_cfg, loss_cfg, batch, key, z_range) -> (loss, aux dict)``;
+    ``load_weights(params, model_cfg, path) -> params`` (for ``init_weights``; may be None).
+    """
+
+    init: Callable[[jax.Array, Any], Any]
+    loss_fn: Callable[..., tuple[jax.Array, dict[str, jax.Array]]]
+    load_weights: Callable[[Any, Any, Path], Any] | None = None
+
+
+class DataFns(NamedTuple):
+    """The crop-stream functions the loop calls (defaults: :mod:`sc6d_jax.data`).
+
+    ``stream_config(models_dir=, crop_size=, batch_size=, seed=, workers=, obj_ids=, augment=)``;
+    ``stream(stream_cfg, start_batch)`` -> iterator of dict batches with ``.obj_ids`` and ``.close()``;
+    ``z_range(stream_cfg) -> (d_lo, d_hi)``.
+    """
+
+    stream_config: Callable[..., Any]
+    stream: Callable[[Any, int], Any]
+    z_range: Callable[[Any], tuple[float, float]]
+
+
+def _default_model_fns() -> ModelFns:
+    from sc6d_jax import model
+
+    return ModelFns(model.init, model.loss_fn, getattr(model, "load_resnet_weights", None))
+
+
+def _default_data_fns() -> DataFns:
+    from sc6d_jax import data
+
+    def stream_config(**kw: Any) -> Any:
+        models_dir = Path(kw["models_dir"])
+        meshes = [p for p in models_dir.iterdir() if p.suffix.lower() in _MESH_EXTS]
+        if not meshes:
+            raise ValueError(f"models folder {models_dir} holds no models ({'/'.join(_MESH_EXTS)} files)")
+        if kw.get("workers") is None:
+            kw.pop("workers", None)
+        return data.StreamConfig(**kw)
+
+    return DataFns(stream_config, data.CropStream, data.delta_z_range)
+
+
+# -- building blocks ------------------------------------------------------------------------------
+def make_optimizer(cfg: TrainConfig) -> tuple[optax.GradientTransformation, optax.Schedule]:
+    """AdamW with cosine decay ``lr -> lr_end`` over ``cfg.steps`` (after optional linear warm-up)."""
+    o = cfg.optim
+    if o.warmup_steps >= cfg.steps:
+        raise ValueError(f"optim.warmup_steps ({o.warmup_steps}) must be smaller than steps ({cfg.steps})")
+    if o.warmup_steps > 0:
+        sched = optax.warmup_cosine_decay_schedule(0.0, o.lr, o.warmup_steps, cfg.steps, o.lr_end)
+    else:
+        sched = optax.cosine_decay_schedule(o.lr, cfg.steps, alpha=o.lr_end / o.lr)
+    tx = optax.adamw(sched, b1=o.b1, b2=o.b2, eps=o.eps, weight_decay=o.weight_decay)
+    if o.grad_clip is not None:
+        tx = optax.chain(optax.clip_by_global_norm(o.grad_clip), tx)
+    return tx, sched
+
+
+def make_train_step(
+    loss_fn: Callable[..., Any],
+    cfg: TrainConfig,
+    tx: optax.GradientTransformation,
+    z_range: tuple[float, float],
+    mesh: jax.sharding.Mesh | None = None,
+) -> Callable[[Any, Any, dict[str, jax.Array], jax.Array, jax.Array], tuple[Any, Any, dict[str, jax.Array]]]:
+    """One jit-compiled optimiser step ``(params, opt_state, batch, step, base_key) -> (params, opt_state, metrics)``.
+
+    The key of the step is ``fold_in(base_key, step)``.  ``params`` and ``opt_state`` are donated.
+    ``metrics`` holds the loss, the scalar entries of the loss's aux dict, the gradient norm and
+    ``finite`` (loss and gradient norm finite).  With a mesh the outputs are replicated on it.
+    """
+    mcfg, lcfg = cfg.model, cfg.loss
+
+    def step_fn(params: Any, opt_state: Any, batch: dict[str, jax.Array], step: jax.Array, base_key: jax.Array):
+        key = jax.random.fold_in(base_key, step)
+        (loss, aux), grads = jax.value_and_grad(
+            lambda p: loss_fn(p, mcfg, lcfg, batch, key, z_range), has_aux=True
+        )(params)
+        gnorm = optax.tree.norm(grads)
+        updates, opt_state = tx.update(grads, opt_state, params)
+        params = optax.apply_updates(params, updates)
+        metrics = {"loss": loss.astype(jnp.float32), "grad_norm": gnorm.astype(jnp.float32)}
+        for k, v in (aux or {}).items():
+            if k not in metrics and hasattr(v, "shape") and jnp.ndim(v) == 0:
+                metrics[k] = jnp.asarray(v, jnp.float32)
+        metrics["finite"] = jnp.isfinite(loss) & jnp.isfinite(gnorm)
+        return params, opt_state, metrics
+
+    kw: dict[str, Any] = {"donate_argnums": (0, 1)}
+    if mesh is not None:
+        rep = NamedSharding(mesh, PartitionSpec())
+        kw["out_shardings"] = (rep, rep, rep)
+    return jax.jit(step_fn, **kw)
+
+
+def initialize_distributed(coordinator_address: str, num_processes: int, process_id: int) -> None:
+    """Join a multi-process (multi-host) run through ``jax.distributed.initialize``.
+
+    Must be called before any other JAX call in the process.  Every process runs the same
+    ``train`` call; the batch is split over all processes' devices.
+    """
+    if not coordinator_address or ":" not in coordinator_address:
+        raise ValueError(f"coordinator address must be HOST:PORT, got {coordinator_address!r}")
+    if not isinstance(num_processes, int) or num_processes < 1:
+        raise ValueError(f"num_processes must be a positive integer, got {num_processes!r}")
+    if not isinstance(process_id, int) or not 0 <= process_id < num_processes:
+        raise ValueError(f"process_id must be in [0, {num_processes}), got {process_id!r}")
+    jax.distributed.initialize(coordinator_address, num_processes=num_processes, process_id=process_id)
+
+
+def _process_seed(seed: int, index: int, count: int) -> int:
+    if count == 1:
+        return seed
+    return int(np.random.SeedSequence([seed, index]).generate_state(1)[0] & 0x7FFFFFFF)
+
+
+def _replicate(tree: Any, sharding: NamedSharding) -> Any:
+    def put(x: Any) -> jax.Array:
+        x = np.asarray(x)
+        return jax.make_array_from_callback(x.shape, sharding, lambda idx: x[idx])
+
+    return jax.tree.map(put, tree)
+
+
+def _host_tree(tree: Any) -> Any:
+    def get(x: Any) -> np.ndarray:
+        if isinstance(x, jax.Array) and not x.is_fully_addressable:
+            x = x.addressable_data(0)
+        return np.asarray(jax.device_get(x))
+
+    return jax.tree.map(get, tree)
+
+
+def _global_batch(batch: dict[str, Any], sharding: NamedSharding, local_bs: int, global_bs: int) -> dict[str, jax.Array]:
+    out = {}
+    for k, v in batch.items():
+        if not isinstance(v, np.ndarray | jax.Array) or v.ndim == 0 or v.shape[0] != local_bs:
+            continue
+        v = np.asarray(v)
+        out[k] = jax.make_array_from_process_local_data(sharding, v, (global_bs, *v.shape[1:]))
+    return out
+
+
+def _read_metrics(path: Path, upto: int) -> list[str]:
+    """Lines of metrics.jsonl with step <= upto (unparseable lines from a kill are dropped)."""
+    if not path.is_file():
+        return []
+    keep = []
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(rec, dict) and isinstance(rec.get("step"), int) and rec["step"] <= upto:
+            keep.append(line)
+    return keep
+
+
+# -- the program ----------------------------------------------------------------------------------
+def train(
+    cfg: TrainConfig,
+    models_dir: str | os.PathLike,
+    run_dir: str | os.PathLike,
+    resume: bool = False,
+    *,
+    workers: int | None = None,
+    init_weights: str | os.PathLike | None = None,
+    progress: bool = True,
+    verbose: bool = True,
+    model_fns: ModelFns | None = None,
+    data_fns: DataFns | None = None,
+) -> Any:
+    """Train a model on crops streamed from the renderer; return the final parameters (numpy).
+
+    Args:
+        cfg: the training config (e.g. ``preset("cpu")``); data-dependent fields are resolved.
+        models_dir: folder of object models (BOP ``models/``) the crop stream renders.
+        run_dir: the run directory: ``config.json``, ``metrics.jsonl``, ``checkpoints/``.
+        resume: continue from the newest checkpoint of ``run_dir`` (start afresh when it has
+            none).  Without it, a run directory holding checkpoints is refused.
+        workers: renderer worker processes of the stream (does not change the data).
+        init_weights: local ResNet weights file for the backbone (fresh runs only).
+        progress: show a tqdm bar on stderr.
+        verbose: print the config and checkpoint notes to stdout.
+        model_fns, data_fns: replacements of :mod:`sc6d_jax.model` / :mod:`sc6d_jax.data`.
+
+    Raises:
+        ValueError: bad input (empty models folder, run directory of another config, corrupt or
+            incompatible checkpoint) -- nothing on disk is changed.
+        NonFiniteLossError: the loss became NaN/inf; the last good checkpoint is kept.
+    """
+    model_fns = model_fns or _default_model_fns()
+    data_fns = data_fns or _default_data_fns()
+    models_dir, run_dir = Path(models_dir), Path(run_dir)
+    if not models_dir.is_dir():
+        raise FileNotFoundError(f"models folder {models_dir} does not exist")
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ValueError(f"run directory {run_dir} is not a directory")
+    if init_weights is not None:
+        init_weights = Path(init_weights)
+        if not init_weights.is_file():
+            raise FileNotFoundError(f"initial weights file {init_weights} does not exist")
+        if model_fns.load_weights is None:
+            raise ValueError("this model has no weight loader; init_weights is not supported")
+
+    # -- where do we start? -----------------------------------------------------------------
+    ckpts = checkpoint_dirs(run_dir)
+    if ckpts and not resume:
+        raise ValueError(
+            f"run directory {run_dir} already holds checkpoints (newest: step {ckpts[-1][0]}); "
+            "resume it (--resume) or choose another directory"
+        )
+    latest: Path | None = None
+    start = 0
+    if resume and ckpts:
+        step_in_name, latest = ckpts[-1]
+        meta = read_meta(latest)
+        if meta["step"] != step_in_name:
+            raise ValueError(f"checkpoint {latest} is corrupt: its metadata says step {meta['step']}")
+        start = int(meta["step"])
+
+    # -- devices, stream, resolved config --------------------------------------------------
+    pidx, pcount = jax.process_index(), jax.process_count()
+    ndev = jax.device_count()
+    gbs = cfg.stream.batch_size
+    if gbs % ndev:
+        raise ValueError(f"batch size {gbs} is not divisible by the number of devices ({ndev})")
+    local_bs = gbs // pcount
+    common = dict(
+        models_dir=models_dir, crop_size=cfg.model.crop_size, workers=workers,
+        obj_ids=cfg.stream.obj_ids, augment=cfg.stream.augment,
+    )
+    scfg = data_fns.stream_config(batch_size=local_bs, seed=_process_seed(cfg.seed, pidx, pcount), **common)
+    stream = data_fns.stream(scfg, start)
+    try:
+        obj_ids = tuple(int(i) for i in stream.obj_ids)
+        if cfg.z_range is None:
+            zcfg = scfg if pcount == 1 else data_fns.stream_config(batch_size=gbs, seed=cfg.seed, **common)
+            z_range = tuple(float(x) for x in data_fns.z_range(zcfg))
+        else:
+            z_range = cfg.z_range
+        cfg = cfg.replace(
+            model=dataclasses.replace(cfg.model, n_objects=len(obj_ids)),
+            stream=dataclasses.replace(cfg.stream, obj_ids=obj_ids),
+            z_range=z_range,
+        )
+        cfg_dict = cfg.to_dict()
+        cfg_path = run_dir / "config.json"
+        if cfg_path.is_file():
+            try:
+                saved = json.loads(cfg_path.read_text(encoding="utf-8"))
+            except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+                raise ValueError(f"{cfg_path} is not valid JSON ({exc}); refusing to overwrite it") from exc
+            diff = config_differences(saved, cfg_dict)
+            if diff:
+                raise ValueError(
+                    f"run directory {run_dir} belongs to another config; differing fields: {'; '.join(diff)}"
+                )
+        if latest is not None:
+            diff = config_differences(read_meta(latest)["config"], cfg_dict)
+            if diff:
+                raise ValueError(f"checkpoint {latest} was written for another config; differing: {'; '.join(diff)}")
+
+        # -- state ------------------------------------------------------------------------
+        tx, sched = make_optimizer(cfg)
+        init_key, base_key = jax.random.split(jax.random.PRNGKey(cfg.seed))
+        init_fn = jax.jit(model_fns.init, static_argnums=1)
+        if latest is not None:
+            p_t = jax.eval_shape(init_fn, init_key, cfg.model)
+            o_t = jax.eval_shape(tx.init, p_t)
+            params, opt_state, key_data, _ = read_checkpoint(latest, p_t, o_t)
+            base_key = np.asarray(key_data)
+            if verbose and pidx == 0:
+                print(f"sc6d train: resuming {run_dir} from step {start} ({latest.name})", flush=True)
+        else:
+            params = init_fn(init_key, cfg.model)
+            if init_weights is not None:
+                params = model_fns.load_weights(params, cfg.model, init_weights)
+            params = _host_tree(params)
+            opt_state = _host_tree(tx.init(params))
+        if verbose and pidx == 0:
+            print(f"sc6d train: config\n{cfg.to_json()}", end="", flush=True)
+
+        devices = np.asarray(jax.devices())
+        mesh = jax.sharding.Mesh(devices, ("data",))
+        rep = NamedSharding(mesh, PartitionSpec())
+        data_sh = NamedSharding(mesh, PartitionSpec("data"))
+        params = _replicate(params, rep)
+        opt_state = _replicate(opt_state, rep)
+        base_key = _replicate(np.asarray(base_key), rep)
+        step_fn = make_train_step(model_fns.loss_fn, cfg, tx, z_range, mesh)
+
+        metrics_path = run_dir / "metrics.jsonl"
+        extra_meta = {
+            "models_dir": str(models_dir),
+            "init_weights": str(init_weights) if init_weights else None,
+            "process_count": pcount,
+            "device_count": ndev,
+            "jax_version": jax.__version__,
+        }
+        if pidx == 0:
+            run_dir.mkdir(parents=True, exist_ok=True)
+            atomic_write_text(cfg_path, cfg.to_json())
+            kept = _read_metrics(metrics_path, start)
+            atomic_write_text(metrics_path, "".join(line + "\n" for line in kept))
+
+        if start >= cfg.steps:
+            if verbose and pidx == 0:
+                print(f"sc6d train: {run_dir} is already complete ({start} steps)", flush=True)
+            return _host_tree(params)
+        return _loop(
+            cfg, stream, step_fn, sched, params, opt_state, base_key, start, run_dir, metrics_path,
+            data_sh, rep, local_bs, latest, extra_meta, progress and pidx == 0, pidx == 0,
+        )
+    finally:
+        close = getattr(stream, "close", None)
+        if close is not None:
+            close()
+
+
+def _loop(
+    cfg: TrainConfig,
+    stream: Iterator[dict[str, Any]],
+    step_fn: Callable[..., Any],
+    sched: optax.Schedule,
+    params: Any,
+    opt_state: Any,
+    base_key: jax.Array,
+    start: int,
+    run_dir: Path,
+    metrics_path: Path,
+    data_sh: NamedSharding,
+    rep: NamedSharding,
+    local_bs: int,
+    last_ckpt: Path | None,
+    extra_meta: dict[str, Any],
+    show_bar: bool,
+    writer: bool,
+) -> Any:
+    from tqdm.auto import tqdm
+
+    gbs = cfg.stream.batch_size
+    cfg_dict = cfg.to_dict()
+    bar = tqdm(total=cfg.steps, initial=start, desc="train", unit="step", file=sys.stderr,
+               disable=not show_bar, dynamic_ncols=True, smoothing=0.1)
+    pending: list[tuple[int, dict[str, jax.Array]]] = []
+    window: list[dict[str, float]] = []
+    t0 = t_win = time.perf_counter()
+    n_win = 0
+    it = iter(stream)
+    mfile = open(metrics_path, "a", encoding="utf-8") if writer else None
+
+    def drain() -> None:
+        nonlocal t_win, n_win
+        while pending:
+            done, m = pending.pop(0)
+            host = {k: float(np.asarray(_host_tree(v))) for k, v in m.items()}
+            finite = bool(host.pop("finite"))
+            window.append(host)
+            n_win += 1
+            if not finite:
+                raise NonFiniteLossError(done, host, last_ckpt)
+            if done % cfg.log_every == 0 or done == cfg.steps:
+                now = time.perf_counter()
+                rec: dict[str, Any] = {"step": done}
+                for k in window[0]:
+                    rec[k] = float(np.mean([w[k] for w in window]))
+                rec["lr"] = float(sched(done - 1))
+                rec["crops_per_s"] = n_win * gbs / max(now - t_win, 1e-9)
+                rec["elapsed_s"] = now - t0
+                window.clear()
+                t_win, n_win = now, 0
+                if mfile is not None:
+                    mfile.write(json.dumps(rec) + "\n")
+                    mfile.flush()
+                post = {k: f"{v:.4g}" for k, v in rec.items() if k not in ("step", "lr", "elapsed_s", "crops_per_s")}
+                post["crops/s"] = f"{rec['crops_per_s']:.0f}"
+                bar.set_postfix(post, refresh=False)
+
+    try:
+        for s in range(start, cfg.steps):
+            batch = _global_batch(next(it), data_sh, local_bs, gbs)
+            step_arr = jax.make_array_from_callback((), rep, lambda idx, s=s: np.asarray(s, np.int32))
+            params, opt_state, m = step_fn(params, opt_state, batch, step_arr, base_key)
+            drain()  # metrics of the previous step, while this one runs
+            done = s + 1
+            pending.append((done, m))
+            bar.update(1)
+            if done % cfg.checkpoint_every == 0 or done == cfg.steps:
+                drain()
+                if writer:
+                    last_ckpt = save_checkpoint(
+                        run_dir, done, params, opt_state, base_key, cfg_dict,
+                        keep=cfg.keep_checkpoints, extra_meta=extra_meta,
+                    )
+                else:
+                    jax.block_until_ready(params)
+        drain()
+    finally:
+        bar.close()
+        if mfile is not None:
+            mfile.close()
+    return _host_tree(params)
+
