@@ -343,6 +343,9 @@ def test_ar_visibility_threshold_and_mspd_width_normalisation():
     assert s["counts"]["targets"] == 1 and s["bop19_average_recall"] == 0.0
     s = evaluate_images([img], [Est(1, 1.0, R, t)], models, visib_gt_min=0.05)
     assert s["counts"]["targets"] == 2 and s["bop19_average_recall_mssd"] == 0.5
+    # the toolkit's newer rule (visib_gt_min < 0): the inst_count most visible GTs are valid
+    s = evaluate_images([img], [Est(1, 1.0, R, _shift(t, 300.0))], models, visib_gt_min=-1)
+    assert s["counts"]["targets"] == 1 and s["bop19_average_recall"] == 1.0
     # a 12-px shift everywhere: correct for MSPD thresholds > 12 at width 640, > 6 at width 1280
     dx = 12.0 * 1000.0 / 600.0
     one = [GroundTruth(1, R, t, 1.0)]
