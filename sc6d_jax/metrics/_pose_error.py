@@ -9,7 +9,7 @@ performed in the same order as in the toolkit so that the results agree to round
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Mapping, Protocol, Sequence, Union
+from typing import Any, Mapping, Protocol, Sequence, Union
 
 import numpy as np
 from scipy import spatial
