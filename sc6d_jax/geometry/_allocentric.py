@@ -17,6 +17,7 @@ defined ray) gives ``R_c = I``.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
@@ -25,6 +26,7 @@ from sc6d_jax.geometry._rotations import _as_float, rotation_between
 from sc6d_jax.geometry._validate import _check_trailing
 
 
+@jax.jit
 def ray_rotation(t: ArrayLike) -> Array:
     """``R_c[..., 3, 3]``: the minimal rotation taking the optical axis onto the ray through ``t``."""
     t = _as_float(t)
@@ -34,6 +36,7 @@ def ray_rotation(t: ArrayLike) -> Array:
     return rotation_between(z, jnp.where(zero, z, t))
 
 
+@jax.jit
 def allocentric_to_egocentric(R_allo: ArrayLike, t: ArrayLike) -> Array:
     """``R_ego = R_c(t) @ R_allo`` (batched; ``R_allo[..., 3, 3]``, ``t[..., 3]``)."""
     R_allo = _as_float(R_allo)
@@ -41,6 +44,7 @@ def allocentric_to_egocentric(R_allo: ArrayLike, t: ArrayLike) -> Array:
     return ray_rotation(jnp.asarray(t, R_allo.dtype)) @ R_allo
 
 
+@jax.jit
 def egocentric_to_allocentric(R_ego: ArrayLike, t: ArrayLike) -> Array:
     """``R_allo = R_c(t)^T @ R_ego`` (batched; ``R_ego[..., 3, 3]``, ``t[..., 3]``)."""
     R_ego = _as_float(R_ego)

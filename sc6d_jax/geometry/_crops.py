@@ -15,6 +15,7 @@ samples crop pixel ``p`` at image point ``T^-1 p`` with the same pixel-centre co
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Literal
 
 import cv2
@@ -37,13 +38,18 @@ from sc6d_jax.geometry._validate import (
 
 def crop_box(box_xywh: ArrayLike, pad: float = 1.5) -> tuple[Array, Array]:
     """Square crop around a box: ``center[..., 2] = (x + w/2, y + h/2)``, ``side[...] = pad * max(w, h)``."""
-    box = _as_float(box_xywh)
-    _check_trailing(box, (4,), "box_xywh")
+    _check_trailing(box_xywh, (4,), "box_xywh")
     if _is_concrete(box_xywh, pad):
-        validate_boxes(box, name="box_xywh")
+        validate_boxes(box_xywh, name="box_xywh")
         validate_positive(pad, "pad")
+    return _crop_box(box_xywh, pad)
+
+
+@jax.jit
+def _crop_box(box_xywh: ArrayLike, pad: float) -> tuple[Array, Array]:
+    box = _as_float(box_xywh)
     center = box[..., :2] + box[..., 2:] / 2
-    side = pad * jnp.maximum(box[..., 2], box[..., 3])
+    side = jnp.asarray(pad, box.dtype) * jnp.maximum(box[..., 2], box[..., 3])
     return center, side
 
 
@@ -56,16 +62,21 @@ def jitter_box(
     are both multiplied by one factor uniform in ``scale``; returns the jittered ``(x, y, w, h)``.
     Apply :func:`crop_box` (padding 1.5) afterwards.
     """
-    box = _as_float(box_xywh)
-    _check_trailing(box, (4,), "box_xywh")
+    _check_trailing(box_xywh, (4,), "box_xywh")
     if _is_concrete(box_xywh):
-        validate_boxes(box, name="box_xywh")
-        if not (0 < scale[0] <= scale[1]) or shift < 0:
-            raise ValueError(f"jitter needs shift >= 0 and 0 < scale[0] <= scale[1], got {shift}, {scale}")
+        validate_boxes(box_xywh, name="box_xywh")
+    if _is_concrete(shift, *scale) and (not (0 < scale[0] <= scale[1]) or shift < 0):
+        raise ValueError(f"jitter needs shift >= 0 and 0 < scale[0] <= scale[1], got {shift}, {scale}")
+    return _jitter_box(key, box_xywh, shift, scale[0], scale[1])
+
+
+@jax.jit
+def _jitter_box(key: Array, box_xywh: ArrayLike, shift: float, lo: float, hi: float) -> Array:
+    box = _as_float(box_xywh)
     k1, k2 = jax.random.split(key)
     lead = box.shape[:-1]
     u = jax.random.uniform(k1, lead + (2,), box.dtype, -shift, shift)
-    f = jax.random.uniform(k2, lead + (1,), box.dtype, scale[0], scale[1])
+    f = jax.random.uniform(k2, lead + (1,), box.dtype, lo, hi)
     wh = box[..., 2:]
     center = box[..., :2] + wh / 2 + u * wh
     new_wh = wh * f
@@ -75,13 +86,18 @@ def jitter_box(
 def crop_transform(center: ArrayLike, side: ArrayLike, out_size: int) -> Array:
     """``T[..., 3, 3]`` mapping image pixel coordinates to crop pixel coordinates (see module doc)."""
     out_size = validate_size(out_size, "out_size")
-    center = _as_float(center)
     _check_trailing(center, (2,), "center")
-    side = jnp.asarray(side, center.dtype)
     if _is_concrete(center, side):
         validate_positive(side, "side")
         if not np.all(np.isfinite(np.asarray(center))):
             raise ValueError("center contains NaN or inf")
+    return _crop_transform(center, side, out_size)
+
+
+@partial(jax.jit, static_argnames="out_size")
+def _crop_transform(center: ArrayLike, side: ArrayLike, out_size: int) -> Array:
+    center = _as_float(center)
+    side = jnp.asarray(side, center.dtype)
     r = out_size / side
     off = (out_size - 1) / 2
     lead = jnp.broadcast_shapes(center.shape[:-1], side.shape)
@@ -96,11 +112,16 @@ def crop_transform(center: ArrayLike, side: ArrayLike, out_size: int) -> Array:
 
 def crop_intrinsics(K: ArrayLike, T: ArrayLike) -> Array:
     """``K_B = T @ K``: the intrinsics of the crop (batched)."""
-    K, T = _as_float(K), _as_float(T)
     _check_trailing(K, (3, 3), "K")
     _check_trailing(T, (3, 3), "T")
     if _is_concrete(K):
         validate_K(K)
+    return _crop_intrinsics(K, T)
+
+
+@jax.jit
+def _crop_intrinsics(K: ArrayLike, T: ArrayLike) -> Array:
+    K, T = _as_float(K), _as_float(T)
     return T @ K
 
 
@@ -112,11 +133,16 @@ def pe_map(K: ArrayLike, T: ArrayLike, out_size: int) -> Array:
     "normalised" PE; computed as ``K^-1 T^-1 p``, which equals it for zero skew). Never rotated.
     """
     out_size = validate_size(out_size, "out_size")
-    K, T = _as_float(K), _as_float(T)
     _check_trailing(K, (3, 3), "K")
     _check_trailing(T, (3, 3), "T")
     if _is_concrete(K):
         validate_K(K)
+    return _pe_map(K, T, out_size)
+
+
+@partial(jax.jit, static_argnames="out_size")
+def _pe_map(K: ArrayLike, T: ArrayLike, out_size: int) -> Array:
+    K, T = _as_float(K), _as_float(T)
     dtype = jnp.result_type(K.dtype, T.dtype)
     M = jnp.linalg.inv(K.astype(dtype)) @ jnp.linalg.inv(T.astype(dtype))  # crop px -> ray
     s = jnp.arange(out_size, dtype=dtype)

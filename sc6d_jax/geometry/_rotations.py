@@ -8,6 +8,7 @@ representation (Zhou et al. 2019) is the first two *columns* of ``R`` concatenat
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
@@ -30,6 +31,7 @@ def _safe_norm(v: Array, axis: int = -1) -> tuple[Array, Array]:
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1)), 0), pos
 
 
+@jax.jit
 def skew(v: ArrayLike) -> Array:
     """Cross-product matrix ``[v]_x`` with ``[v]_x @ u = v x u``; ``v[..., 3] -> [..., 3, 3]``."""
     v = _as_float(v)
@@ -41,6 +43,7 @@ def skew(v: ArrayLike) -> Array:
     )
 
 
+@jax.jit
 def quat_to_matrix(q: ArrayLike) -> Array:
     """Quaternion ``(w, x, y, z)`` (need not be unit; it is normalised) -> rotation matrix."""
     q = _as_float(q)
@@ -58,6 +61,7 @@ def quat_to_matrix(q: ArrayLike) -> Array:
     return jnp.stack(rows, -2)
 
 
+@jax.jit
 def matrix_to_quat(R: ArrayLike) -> Array:
     """Rotation matrix -> unit quaternion ``(w, x, y, z)`` with ``w >= 0``.
 
@@ -88,6 +92,7 @@ def matrix_to_quat(R: ArrayLike) -> Array:
     return jnp.where(q[..., :1] < 0, -q, q)
 
 
+@jax.jit
 def axis_angle_to_matrix(aa: ArrayLike) -> Array:
     """Axis-angle vector ``angle * axis`` -> rotation matrix (Rodrigues; Taylor series near 0)."""
     aa = _as_float(aa)
@@ -103,6 +108,7 @@ def axis_angle_to_matrix(aa: ArrayLike) -> Array:
     return eye + a[..., None, None] * Kx + b[..., None, None] * (Kx @ Kx)
 
 
+@jax.jit
 def matrix_to_axis_angle(R: ArrayLike) -> Array:
     """Rotation matrix -> axis-angle vector with angle in ``[0, pi]`` (via the quaternion).
 
@@ -120,6 +126,7 @@ def matrix_to_axis_angle(R: ArrayLike) -> Array:
     return v * factor[..., None]
 
 
+@jax.jit
 def sixd_to_matrix(x: ArrayLike) -> Array:
     """6D representation ``(a1, a2)`` -> rotation whose first two columns are Gram-Schmidt of a1, a2."""
     x = _as_float(x)
@@ -132,6 +139,7 @@ def sixd_to_matrix(x: ArrayLike) -> Array:
     return jnp.stack([b1, b2, b3], axis=-1)
 
 
+@jax.jit
 def matrix_to_sixd(R: ArrayLike) -> Array:
     """Rotation matrix -> 6D representation: its first two columns ``(R[:, 0], R[:, 1])``."""
     R = _as_float(R)
@@ -139,6 +147,7 @@ def matrix_to_sixd(R: ArrayLike) -> Array:
     return jnp.concatenate([R[..., :, 0], R[..., :, 1]], axis=-1)
 
 
+@jax.jit
 def project_to_so3(M: ArrayLike) -> Array:
     """Nearest rotation (Frobenius norm) to a 3x3 matrix: ``U diag(1, 1, d) V^T`` from the SVD."""
     M = _as_float(M)
@@ -149,6 +158,7 @@ def project_to_so3(M: ArrayLike) -> Array:
     return U @ Vh
 
 
+@jax.jit
 def geodesic_angle(R1: ArrayLike, R2: ArrayLike) -> Array:
     """Rotation angle of ``R1^T R2`` in ``[0, pi]``.
 
@@ -175,16 +185,19 @@ def _axis_rot(a: ArrayLike, i: int, j: int) -> Array:
     return R.at[..., i, j].set(-s).at[..., j, i].set(s)
 
 
+@jax.jit
 def rot_x(a: ArrayLike) -> Array:
     """Rotation by angle ``a`` (radians, any shape) about the x axis."""
     return _axis_rot(a, 1, 2)
 
 
+@jax.jit
 def rot_y(a: ArrayLike) -> Array:
     """Rotation by angle ``a`` (radians, any shape) about the y axis."""
     return _axis_rot(a, 2, 0)
 
 
+@jax.jit
 def rot_z(a: ArrayLike) -> Array:
     """Rotation by angle ``a`` (radians, any shape) about the z axis."""
     return _axis_rot(a, 0, 1)
@@ -198,6 +211,7 @@ def _perpendicular(a: Array) -> Array:
     return p / jnp.linalg.norm(p, axis=-1, keepdims=True)
 
 
+@jax.jit
 def rotation_between(a: ArrayLike, b: ArrayLike) -> Array:
     """Minimal rotation ``R`` with ``R @ a_hat = b_hat`` (``a``, ``b`` need not be unit).
 

@@ -8,6 +8,7 @@ true covering radius):  see the table in :func:`so3_grid`.
 from __future__ import annotations
 
 import math
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -34,6 +35,7 @@ def fibonacci_sphere(n: int) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=-1)
 
 
+@jax.jit
 def viewpoint_rotation(v: ArrayLike, roll: ArrayLike) -> Array:
     """Object-to-camera rotation of a camera looking at the object origin from direction ``v``.
 
@@ -90,6 +92,11 @@ def so3_grid(n_views: int = 4000, n_inplane: int = 120, seed: int = 0) -> np.nda
 def random_rotations(key: Array, n: int, dtype: jnp.dtype = jnp.float32) -> Array:
     """``(n, 3, 3)`` rotations drawn uniformly (Haar measure), from normalised Gaussian quaternions."""
     n = validate_size(n, "n")
+    return _random_rotations(key, n, jnp.dtype(dtype))
+
+
+@partial(jax.jit, static_argnames=("n", "dtype"))
+def _random_rotations(key: Array, n: int, dtype: jnp.dtype) -> Array:
     q = jax.random.normal(key, (n, 4), dtype=dtype)
     return quat_to_matrix(q)
 
@@ -102,11 +109,17 @@ def sample_rotation_deltas(key: Array, n: int, dtype: jnp.dtype = jnp.float32) -
     the batch). ``n`` must be a static Python int; jit-able in ``key``.
     """
     n = validate_size(n, "n")
+    return _sample_rotation_deltas(key, n, jnp.dtype(dtype))
+
+
+@partial(jax.jit, static_argnames=("n", "dtype"))
+def _sample_rotation_deltas(key: Array, n: int, dtype: jnp.dtype) -> Array:
     views = jnp.asarray(fibonacci_sphere(n), dtype=dtype)
     roll = jax.random.uniform(key, (n,), dtype=dtype, minval=0.0, maxval=2 * jnp.pi)
     return viewpoint_rotation(views, roll)
 
 
+@jax.jit
 def rebase_negatives(deltas: ArrayLike, R_gt: ArrayLike) -> Array:
     """Candidates ``[..., Q + 1, 3, 3]``: index 0 is ``R_gt``, index ``1 + q`` is ``deltas[q] @ R_gt``."""
     deltas, R_gt = _as_float(deltas), _as_float(R_gt)
@@ -130,7 +143,7 @@ def _best_trace_scan(samples: Array, chunks: Array) -> tuple[Array, Array]:
         j = jnp.argmax(tr, axis=1)
         val = jnp.take_along_axis(tr, j[:, None], axis=1)[:, 0]
         better = val > best
-        return (jnp.where(better, val, best), jnp.where(better, i * c + j, idx)), None
+        return (jnp.where(better, val, best), jnp.where(better, (i * c + j).astype(jnp.int32), idx)), None
 
     init = (jnp.full((m,), -jnp.inf, samples.dtype), jnp.zeros((m,), jnp.int32))
     (best, idx), _ = jax.lax.scan(step, init, (jnp.arange(chunks.shape[0], dtype=jnp.int32), chunks))

@@ -17,6 +17,8 @@ Depth bins: ``n_bins`` values spaced evenly over ``[d_lo, d_hi]`` *including* bo
 
 from __future__ import annotations
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 from jax import Array
@@ -36,16 +38,21 @@ def encode_translation(
 ) -> tuple[Array, Array]:
     """``t[..., 3]`` (mm) -> ``(delta_xy[..., 2], delta_z[...])`` for the crop ``(center, side)``."""
     out_size = validate_size(out_size, "out_size")
-    t = _as_float(t)
     _check_trailing(t, (3,), "t")
-    K = jnp.asarray(K, t.dtype)
-    center = jnp.asarray(center, t.dtype)
-    side = jnp.asarray(side, t.dtype)
     _check_trailing(K, (3, 3), "K")
     _check_trailing(center, (2,), "center")
     if _is_concrete(K, side):
         validate_K(K)
         validate_positive(side, "side")
+    return _encode_translation(t, K, center, side, out_size)
+
+
+@partial(jax.jit, static_argnames="out_size")
+def _encode_translation(t, K, center, side, out_size: int) -> tuple[Array, Array]:
+    t = _as_float(t)
+    K = jnp.asarray(K, t.dtype)
+    center = jnp.asarray(center, t.dtype)
+    side = jnp.asarray(side, t.dtype)
     h = jnp.einsum("...ij,...j->...i", K, t)
     p = h[..., :2] / h[..., 2:3]
     delta_xy = (p - center) / side[..., None]
@@ -58,16 +65,21 @@ def decode_translation(
 ) -> Array:
     """Exact inverse of :func:`encode_translation`: ``(delta_xy, delta_z) -> t[..., 3]`` (mm)."""
     out_size = validate_size(out_size, "out_size")
-    delta_xy = _as_float(delta_xy)
     _check_trailing(delta_xy, (2,), "delta_xy")
-    dt = delta_xy.dtype
-    delta_z, K = jnp.asarray(delta_z, dt), jnp.asarray(K, dt)
-    center, side = jnp.asarray(center, dt), jnp.asarray(side, dt)
     _check_trailing(K, (3, 3), "K")
     _check_trailing(center, (2,), "center")
     if _is_concrete(K, side):
         validate_K(K)
         validate_positive(side, "side")
+    return _decode_translation(delta_xy, delta_z, K, center, side, out_size)
+
+
+@partial(jax.jit, static_argnames="out_size")
+def _decode_translation(delta_xy, delta_z, K, center, side, out_size: int) -> Array:
+    delta_xy = _as_float(delta_xy)
+    dt = delta_xy.dtype
+    delta_z, K = jnp.asarray(delta_z, dt), jnp.asarray(K, dt)
+    center, side = jnp.asarray(center, dt), jnp.asarray(side, dt)
     p = center + side[..., None] * delta_xy
     tz = delta_z * out_size / side
     ph = jnp.concatenate([p, jnp.ones_like(p[..., :1])], axis=-1)
@@ -86,6 +98,11 @@ def z_bin_label(delta_z: ArrayLike, n_bins: int, d_lo: float, d_hi: float) -> Ar
     """Index (int32, same shape as ``delta_z``) of the nearest bin value; out-of-range values clip."""
     n_bins = validate_size(n_bins, "n_bins")
     _check_range(d_lo, d_hi)
+    return _z_bin_label(delta_z, n_bins, d_lo, d_hi)
+
+
+@partial(jax.jit, static_argnames="n_bins")
+def _z_bin_label(delta_z, n_bins: int, d_lo, d_hi) -> Array:
     dz = _as_float(delta_z)
     if n_bins == 1:
         return jnp.zeros(dz.shape, jnp.int32)
@@ -99,5 +116,10 @@ def z_expectation(logits: ArrayLike, d_lo: float, d_hi: float) -> Array:
     if logits.ndim < 1 or logits.shape[-1] < 1:
         raise ValueError(f"logits must have shape [..., K] with K >= 1, got {logits.shape}")
     _check_range(d_lo, d_hi)
-    centers = z_bin_centers(logits.shape[-1], d_lo, d_hi, dtype=logits.dtype)
+    return _z_expectation(logits, d_lo, d_hi)
+
+
+@jax.jit
+def _z_expectation(logits, d_lo, d_hi) -> Array:
+    centers = jnp.linspace(d_lo, d_hi, logits.shape[-1], dtype=logits.dtype)
     return jax.nn.softmax(logits, axis=-1) @ centers
