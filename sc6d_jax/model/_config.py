@@ -1,0 +1,107 @@
+"""ModelConfig: every architectural choice of the SC6D network as a hashable, frozen dataclass."""
+
+from __future__ import annotations
+
+import dataclasses
+
+#: Residual blocks per stage (BasicBlock) and channel multipliers of the four stages.
+BACKBONES: dict[str, tuple[tuple[int, int, int, int], tuple[int, int, int, int]]] = {
+    # name: (blocks per stage, stage width multipliers of ``width``)
+    "tiny": ((1, 1, 1, 1), (1, 1, 2, 2)),
+    "resnet10": ((1, 1, 1, 1), (1, 2, 4, 8)),
+    "resnet18": ((2, 2, 2, 2), (1, 2, 4, 8)),
+    "resnet34": ((3, 4, 6, 3), (1, 2, 4, 8)),
+}
+
+ROT_HEADS = ("so3", "ipdf")
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    """Architecture of the SC6D network (static: hashable, usable as a jit static argument).
+
+    Defaults are the paper's model (ResNet34 at 256x256, 1000 z bins). Fields:
+
+    - n_objects: objects the model knows (per-object decoders / SO(3) output layers).
+    - crop_size: S, the input crop side (multiple of 16); features and mask come out at S/4.
+    - backbone: "tiny" | "resnet10" | "resnet18" | "resnet34" (BasicBlock ResNets; "tiny" has
+      one block per stage and stage widths (w, w, 2w, 2w)); width: channels of stage 1 (64 in
+      torchvision ResNets).
+    - stem_kernel: kernel of the new stride-2 stem conv (7 as torchvision); no max-pool.
+    - decoder_width: channels of the U-Net up-block at S/8 (the block at S/4 has half);
+      0 = the backbone's last-stage width (512 for ResNet34, the authors' choice).
+    - feat_dim: feature channels at S/4 (64); emb_dim: rotation embedding size (32).
+    - n_z_bins: K, bins of delta_z (1000); the "regression" z mode uses output unit 0 only.
+    - use_pe: concatenate the 2-channel PE map to RGB (5 input channels) or not (3).
+    - per_object_decoder: one U-Net decoder per object (paper) or one shared decoder whose
+      bottleneck gets a learned per-object embedding added.
+    - rot_head: "so3" (SO(3) encoder + cosine) or "ipdf" (Implicit-PDF style scoring MLP).
+    - conv_impl: "auto" | "im2col" | "lax" (see sc6d_jax.model._layers).
+    - pose_width: channels of the pose decoder (128 in the paper; 8 branches -> 8*pose_width).
+    - head_hidden: FC width of the three heads (256); so3_hidden: SO(3) encoder width (256).
+    - ipdf_hidden: width of the IPDF MLP (256); ipdf_pe_freqs: positional-encoding
+      frequencies of the rotation input to IPDF (0 = the raw 9 matrix entries).
+    - gn_groups: maximum GroupNorm groups (32; fewer when channels are few).
+    """
+
+    n_objects: int = 1
+    crop_size: int = 256
+    backbone: str = "resnet34"
+    width: int = 64
+    stem_kernel: int = 7
+    decoder_width: int = 0
+    feat_dim: int = 64
+    emb_dim: int = 32
+    n_z_bins: int = 1000
+    use_pe: bool = True
+    per_object_decoder: bool = True
+    rot_head: str = "so3"
+    conv_impl: str = "auto"
+    pose_width: int = 128
+    head_hidden: int = 256
+    so3_hidden: int = 256
+    ipdf_hidden: int = 256
+    ipdf_pe_freqs: int = 0
+    gn_groups: int = 32
+
+    def __post_init__(self) -> None:
+        if self.backbone not in BACKBONES:
+            raise ValueError(f"backbone must be one of {sorted(BACKBONES)}, got {self.backbone!r}")
+        if self.rot_head not in ROT_HEADS:
+            raise ValueError(f"rot_head must be one of {ROT_HEADS}, got {self.rot_head!r}")
+        if self.conv_impl not in ("auto", "im2col", "lax"):
+            raise ValueError(f"conv_impl must be 'auto', 'im2col' or 'lax', got {self.conv_impl!r}")
+        if self.crop_size < 32 or self.crop_size % 16:
+            raise ValueError(f"crop_size must be a multiple of 16 and >= 32, got {self.crop_size}")
+        if self.stem_kernel < 1 or self.stem_kernel % 2 == 0:
+            raise ValueError(f"stem_kernel must be odd and positive, got {self.stem_kernel}")
+        for name in ("n_objects", "width", "feat_dim", "emb_dim", "n_z_bins", "pose_width",
+                     "head_hidden", "so3_hidden", "ipdf_hidden", "gn_groups"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name} must be a positive int, got {v!r}")
+        if self.decoder_width < 0 or self.ipdf_pe_freqs < 0:
+            raise ValueError("decoder_width and ipdf_pe_freqs must be >= 0")
+
+    @property
+    def in_channels(self) -> int:
+        """Input channels of the stem: 5 with the PE map, 3 without."""
+        return 5 if self.use_pe else 3
+
+    @property
+    def stage_blocks(self) -> tuple[int, ...]:
+        return BACKBONES[self.backbone][0]
+
+    @property
+    def stage_widths(self) -> tuple[int, ...]:
+        return tuple(m * self.width for m in BACKBONES[self.backbone][1])
+
+    @property
+    def dec_width(self) -> int:
+        """Channels of the S/8 up-block (decoder_width or the last stage's width)."""
+        return self.decoder_width or self.stage_widths[-1]
+
+    @property
+    def mask_size(self) -> int:
+        """Side of the feature map and of the mask logit: S/4."""
+        return self.crop_size // 4

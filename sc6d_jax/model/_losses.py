@@ -1,0 +1,228 @@
+"""SC6D training losses: InfoNCE over sampled rotations, z (focal / CE / L1), delta_xy L1, mask BCE.
+
+Every ablation switch of the paper's Table 3 is a LossConfig field: z regression vs
+classification (A0/A1), focal loss (A2), expectation decode (A3; decode only, the training loss
+is the same as classification), PE map (A4; ModelConfig.use_pe), IPDF head (ModelConfig.rot_head).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from sc6d_jax.geometry import rebase_negatives, sample_rotation_deltas, z_bin_centers, z_bin_label
+
+from ._config import ModelConfig
+from ._network import apply
+from ._rotation import rotation_logits
+
+Z_MODES = ("regression", "classification", "expectation")
+Z_LOSSES = ("focal", "ce")
+MASK_DOWNSAMPLE = ("area", "nearest")
+
+
+@dataclasses.dataclass(frozen=True)
+class LossConfig:
+    """Loss settings (frozen, hashable; a jit static argument).
+
+    - z_mode: "regression" (L1 on delta_z normalised to [0, 1] over the bin range, read from
+      z-head output unit 0), "classification" (argmax decode) or "expectation" (softmax
+      expectation decode; paper default). Both classification modes train the same loss.
+    - z_loss: "focal" (-alpha (1 - p)^gamma log p, paper) or "ce" (plain cross-entropy).
+    - focal_alpha 0.5, focal_gamma 2.
+    - tau: InfoNCE temperature (0.1). n_negatives: Q sampled rotations (5000).
+    - rebase_negatives: True (authors): the Q Fibonacci-viewpoint + random-roll deltas are
+      left-multiplied onto each sample's ground truth, so every sample has its own Q
+      candidates (the SO(3) encoder runs B*(Q+1) times). False: the Q deltas are used as
+      they are, one candidate set for the whole batch (encoder runs Q + B times; much
+      cheaper on a CPU), plus each sample's ground truth.
+    - per_sample_negatives: draw an independent random roll per sample (vmapped over the
+      batch) instead of one set of deltas shared by the batch.
+    - w_rot 1, w_xy 10, w_z 1, w_mask 1: loss weights.
+    - mask_downsample: "area" (default: the S x S visible mask averaged over 4x4 blocks, a
+      soft target in [0, 1]) or "nearest" (every 4th pixel, offset 2: a binary target).
+    """
+
+    z_mode: str = "expectation"
+    z_loss: str = "focal"
+    focal_alpha: float = 0.5
+    focal_gamma: float = 2.0
+    tau: float = 0.1
+    n_negatives: int = 5000
+    rebase_negatives: bool = True
+    per_sample_negatives: bool = False
+    w_rot: float = 1.0
+    w_xy: float = 10.0
+    w_z: float = 1.0
+    w_mask: float = 1.0
+    mask_downsample: str = "area"
+
+    def __post_init__(self) -> None:
+        if self.z_mode not in Z_MODES:
+            raise ValueError(f"z_mode must be one of {Z_MODES}, got {self.z_mode!r}")
+        if self.z_loss not in Z_LOSSES:
+            raise ValueError(f"z_loss must be one of {Z_LOSSES}, got {self.z_loss!r}")
+        if self.mask_downsample not in MASK_DOWNSAMPLE:
+            raise ValueError(f"mask_downsample must be one of {MASK_DOWNSAMPLE}, got {self.mask_downsample!r}")
+        if not self.tau > 0:
+            raise ValueError(f"tau must be > 0, got {self.tau}")
+        if not isinstance(self.n_negatives, int) or self.n_negatives < 1:
+            raise ValueError(f"n_negatives must be a positive int, got {self.n_negatives!r}")
+        for name in ("w_rot", "w_xy", "w_z", "w_mask", "focal_alpha", "focal_gamma"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+
+
+# ----------------------------------------------------------------------------- loss terms
+
+
+def info_nce(logits: jax.Array) -> jax.Array:
+    """Mean InfoNCE over the batch with the positive at index 0: logsumexp(l) - l[:, 0]."""
+    return jnp.mean(jax.nn.logsumexp(logits, axis=-1) - logits[:, 0])
+
+
+def focal_loss(logits: jax.Array, labels: jax.Array, alpha: float = 0.5, gamma: float = 2.0) -> jax.Array:
+    """Mean over the batch of -alpha (1 - p)^gamma log p, p = softmax(logits)[label]."""
+    logp = jnp.take_along_axis(jax.nn.log_softmax(logits, axis=-1), labels[:, None], axis=-1)[:, 0]
+    p = jnp.exp(logp)
+    return jnp.mean(-alpha * (1.0 - p) ** gamma * logp)
+
+
+def cross_entropy(logits: jax.Array, labels: jax.Array) -> jax.Array:
+    """Mean softmax cross-entropy with integer labels."""
+    logp = jnp.take_along_axis(jax.nn.log_softmax(logits, axis=-1), labels[:, None], axis=-1)[:, 0]
+    return -jnp.mean(logp)
+
+
+def bce_with_logits(logits: jax.Array, targets: jax.Array) -> jax.Array:
+    """Mean binary cross-entropy on logits with (soft) targets in [0, 1], numerically stable."""
+    return jnp.mean(jnp.maximum(logits, 0) - logits * targets + jnp.log1p(jnp.exp(-jnp.abs(logits))))
+
+
+def downsample_mask(mask: jax.Array, factor: int = 4, mode: str = "area") -> jax.Array:
+    """(B,S,S) mask (any dtype; > 0 is foreground) -> float32 (B,S/f,S/f) target.
+
+    "area": fraction of foreground pixels in each f x f block; "nearest": the pixel at offset
+    f // 2 inside each block.
+    """
+    m = (mask > 0).astype(jnp.float32)
+    b, h, w = m.shape
+    if h % factor or w % factor:
+        raise ValueError(f"mask size {h}x{w} not divisible by {factor}")
+    if mode == "area":
+        return m.reshape(b, h // factor, factor, w // factor, factor).mean(axis=(2, 4))
+    if mode == "nearest":
+        return m[:, factor // 2 :: factor, factor // 2 :: factor]
+    raise ValueError(f"mode must be one of {MASK_DOWNSAMPLE}, got {mode!r}")
+
+
+def predict_z(out: dict, lcfg: LossConfig, z_range: tuple[float, float]) -> jax.Array:
+    """Decode delta_z (B,) from a forward pass according to lcfg.z_mode."""
+    d_lo, d_hi = z_range
+    zl = out["z_logits"]
+    if lcfg.z_mode == "regression":
+        return d_lo + (d_hi - d_lo) * zl[..., 0]
+    centers = z_bin_centers(zl.shape[-1], d_lo, d_hi, dtype=zl.dtype)
+    if lcfg.z_mode == "classification":
+        return centers[jnp.argmax(zl, axis=-1)]
+    return jax.nn.softmax(zl, axis=-1) @ centers
+
+
+def candidate_logits(
+    params: dict,
+    mcfg: ModelConfig,
+    lcfg: LossConfig,
+    out: dict,
+    R_gt: jax.Array,
+    obj_idx: jax.Array,
+    key: jax.Array,
+) -> jax.Array:
+    """(B, Q+1) rotation logits with the ground truth at index 0 (negatives per lcfg)."""
+    b = R_gt.shape[0]
+    q = lcfg.n_negatives
+    if lcfg.per_sample_negatives:
+        deltas = jax.vmap(lambda k: sample_rotation_deltas(k, q))(jax.random.split(key, b))  # (B,Q,3,3)
+        if lcfg.rebase_negatives:
+            cands = jax.vmap(rebase_negatives)(deltas, R_gt)
+        else:
+            cands = jnp.concatenate([R_gt[:, None], deltas], axis=1)
+        return rotation_logits(params, mcfg, out, cands, obj_idx, lcfg.tau)
+    deltas = sample_rotation_deltas(key, q)  # (Q,3,3), shared by the batch
+    if lcfg.rebase_negatives:
+        cands = rebase_negatives(deltas, R_gt)  # (B,Q+1,3,3)
+        return rotation_logits(params, mcfg, out, cands, obj_idx, lcfg.tau)
+    pos = rotation_logits(params, mcfg, out, R_gt[:, None], obj_idx, lcfg.tau)  # (B,1)
+    neg = rotation_logits(params, mcfg, out, deltas, obj_idx, lcfg.tau)  # (B,Q)
+    return jnp.concatenate([pos, neg], axis=1)
+
+
+def _check_batch(mcfg: ModelConfig, batch: dict) -> None:
+    need = ["rgb", "mask_visib", "R_allo", "delta_xy", "delta_z", "obj_idx"] + (["pe"] if mcfg.use_pe else [])
+    missing = [k for k in need if k not in batch]
+    if missing:
+        raise ValueError(f"batch is missing {missing}")
+    b = batch["rgb"].shape[0]
+    s = mcfg.crop_size
+    shapes = {"mask_visib": (b, s, s), "R_allo": (b, 3, 3), "delta_xy": (b, 2), "delta_z": (b,), "obj_idx": (b,)}
+    for k, shp in shapes.items():
+        if tuple(batch[k].shape) != shp:
+            raise ValueError(f"batch[{k!r}] must have shape {shp}, got {tuple(batch[k].shape)}")
+
+
+def loss_fn(
+    params: dict,
+    mcfg: ModelConfig,
+    lcfg: LossConfig,
+    batch: dict,
+    key: jax.Array,
+    z_range: tuple[float, float],
+) -> tuple[jax.Array, dict]:
+    """Total loss and its terms for one batch of the crop stream.
+
+    batch: 'rgb' uint8 (B,S,S,3) (converted to float in [0,1] here; float input is taken as
+    already in [0,1]), 'pe' (B,S,S,2), 'mask_visib' (B,S,S) (> 0 = visible), 'R_allo' (B,3,3),
+    'delta_xy' (B,2), 'delta_z' (B,), 'obj_idx' (B,). key: randomness of the negatives.
+    z_range: (d_lo, d_hi) of the z bins (sc6d_jax.data.delta_z_range).
+
+    Returns (loss, aux) with aux = {'loss', 'loss_rot', 'loss_xy', 'loss_z', 'loss_mask',
+    'rot_top1' (fraction of samples whose ground truth outscores every negative),
+    'z_abs_err' (mean |decoded delta_z - delta_z|), 'xy_abs_err'}.
+    """
+    _check_batch(mcfg, batch)
+    d_lo, d_hi = z_range
+    obj_idx = jnp.asarray(batch["obj_idx"], jnp.int32)
+    out = apply(params, mcfg, batch["rgb"], batch.get("pe") if mcfg.use_pe else None, obj_idx)
+    R_gt = jnp.asarray(batch["R_allo"], jnp.float32)
+    logits = candidate_logits(params, mcfg, lcfg, out, R_gt, obj_idx, key)
+    loss_rot = info_nce(logits)
+
+    dxy = jnp.asarray(batch["delta_xy"], jnp.float32)
+    loss_xy = jnp.mean(jnp.sum(jnp.abs(out["delta_xy"] - dxy), axis=-1))
+
+    dz = jnp.asarray(batch["delta_z"], jnp.float32)
+    if lcfg.z_mode == "regression":
+        loss_z = jnp.mean(jnp.abs(out["z_logits"][:, 0] - (dz - d_lo) / (d_hi - d_lo)))
+    else:
+        labels = z_bin_label(dz, mcfg.n_z_bins, d_lo, d_hi)
+        if lcfg.z_loss == "focal":
+            loss_z = focal_loss(out["z_logits"], labels, lcfg.focal_alpha, lcfg.focal_gamma)
+        else:
+            loss_z = cross_entropy(out["z_logits"], labels)
+
+    target = downsample_mask(jnp.asarray(batch["mask_visib"]), 4, lcfg.mask_downsample)
+    loss_mask = bce_with_logits(out["mask_logit"], target)
+
+    loss = lcfg.w_rot * loss_rot + lcfg.w_xy * loss_xy + lcfg.w_z * loss_z + lcfg.w_mask * loss_mask
+    aux = {
+        "loss": loss,
+        "loss_rot": loss_rot,
+        "loss_xy": loss_xy,
+        "loss_z": loss_z,
+        "loss_mask": loss_mask,
+        "rot_top1": jnp.mean((jnp.argmax(logits, axis=-1) == 0).astype(jnp.float32)),
+        "z_abs_err": jnp.mean(jnp.abs(jax.lax.stop_gradient(predict_z(out, lcfg, z_range)) - dz)),
+        "xy_abs_err": jnp.mean(jnp.abs(jax.lax.stop_gradient(out["delta_xy"]) - dxy)),
+    }
+    return loss, aux

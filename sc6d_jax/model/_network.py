@@ -1,0 +1,78 @@
+"""The SC6D network: init(key, cfg) -> params, apply(params, cfg, rgb, pe, obj_idx) -> outputs."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from ._config import ModelConfig
+from ._encoder import backbone, decoder, init_backbone, init_decoder
+from ._pose_decoder import init_pose_decoder, pose_decoder
+from ._rotation import _l2n, init_rotation_head
+
+#: ImageNet statistics (torchvision), so that converted ImageNet weights see familiar inputs.
+RGB_MEAN = (0.485, 0.456, 0.406)
+RGB_STD = (0.229, 0.224, 0.225)
+
+
+def init(key: jax.Array, cfg: ModelConfig) -> dict:
+    """Fresh parameters: {'backbone', 'decoder', 'pose_decoder', 'rot_head'} (plain dicts/lists).
+
+    Deterministic: the same key and config give bit-identical params.
+    """
+    if not isinstance(cfg, ModelConfig):
+        raise ValueError(f"cfg must be a ModelConfig, got {type(cfg).__name__}")
+    k1, k2, k3, k4 = jax.random.split(key, 4)
+    return {
+        "backbone": init_backbone(k1, cfg),
+        "decoder": init_decoder(k2, cfg),
+        "pose_decoder": init_pose_decoder(k3, cfg),
+        "rot_head": init_rotation_head(k4, cfg),
+    }
+
+
+def normalize_rgb(rgb: jax.Array) -> jax.Array:
+    """uint8 (0..255) -> float32 in [0, 1]; float input is returned as float32 unchanged."""
+    if jnp.issubdtype(rgb.dtype, jnp.integer):
+        return rgb.astype(jnp.float32) / 255.0
+    return rgb.astype(jnp.float32)
+
+
+def _check_inputs(cfg: ModelConfig, rgb: jax.Array, pe: jax.Array | None, obj_idx: jax.Array) -> None:
+    s = cfg.crop_size
+    if rgb.ndim != 4 or rgb.shape[1:] != (s, s, 3):
+        raise ValueError(f"rgb must have shape (B, {s}, {s}, 3), got {rgb.shape}")
+    b = rgb.shape[0]
+    if cfg.use_pe:
+        if pe is None or pe.shape != (b, s, s, 2):
+            raise ValueError(f"pe must have shape ({b}, {s}, {s}, 2) when use_pe=True, got {None if pe is None else pe.shape}")
+    if jnp.shape(obj_idx) != (b,):
+        raise ValueError(f"obj_idx must have shape ({b},), got {jnp.shape(obj_idx)}")
+
+
+def apply(
+    params: dict, cfg: ModelConfig, rgb: jax.Array, pe: jax.Array | None, obj_idx: jax.Array
+) -> dict:
+    """Forward pass.
+
+    rgb: float32 (B,S,S,3) in [0,1] (uint8 is accepted and divided by 255); it is normalised
+    inside with ImageNet mean/std. pe: (B,S,S,2) PE map (ignored, may be None, when
+    cfg.use_pe is False). obj_idx: int (B,) object index in [0, n_objects).
+
+    Returns {'rot_emb' (B,emb_dim) unit-norm image embedding, 'delta_xy' (B,2),
+    'z_logits' (B,n_z_bins), 'mask_logit' (B,S/4,S/4)}.
+    """
+    _check_inputs(cfg, rgb, pe, obj_idx)
+    obj_idx = jnp.asarray(obj_idx, jnp.int32)
+    x = (normalize_rgb(rgb) - jnp.asarray(RGB_MEAN)) / jnp.asarray(RGB_STD)
+    if cfg.use_pe:
+        x = jnp.concatenate([x, pe.astype(jnp.float32)], axis=-1)
+    feats = backbone(params["backbone"], cfg, x)
+    feat, mask_logit = decoder(params["decoder"], cfg, feats, obj_idx)
+    rot, dxy, zl = pose_decoder(params["pose_decoder"], cfg, feat, mask_logit)
+    return {"rot_emb": _l2n(rot), "delta_xy": dxy, "z_logits": zl, "mask_logit": mask_logit}
+
+
+def count_params(params: dict) -> int:
+    """Total number of scalars in a params pytree."""
+    return int(sum(x.size for x in jax.tree.leaves(params)))

@@ -1,0 +1,71 @@
+"""Pose decoder (paper Fig. "pose decoder", REFERENCE section 1), shared by all objects.
+
+features (S/4, feat_dim) ++ sigmoid(mask) -> 3x3/2 conv -> 3x3/2 conv (pose_width, S/16)
+-> [itself, six 3x3 convs with dilation 2..7, global average pool broadcast] (8 * pose_width)
+-> three heads, each 3x3/2 conv (pose_width) + flatten + FC head_hidden + FC out:
+rotation embedding (emb_dim), delta_xy (2), z logits (n_z_bins).
+GroupNorm + ReLU after every layer but the outputs (paper; the authors' code has no GN after
+the hidden FC layer). The pooled branch has no parameters (paper: "global average pooling
+(and expanding)").
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from ._config import ModelConfig
+from ._encoder import conv_gn_relu, init_conv_gn
+from ._layers import conv_output_size, dense, group_norm, init_dense, init_gn, num_groups
+
+DILATIONS = (2, 3, 4, 5, 6, 7)
+
+
+def _flat_size(cfg: ModelConfig) -> int:
+    s = cfg.mask_size
+    for _ in range(3):
+        s = conv_output_size(s, 3, 2, 1)
+    return s * s * cfg.pose_width
+
+
+def init_pose_decoder(key: jax.Array, cfg: ModelConfig) -> dict:
+    pw, hh = cfg.pose_width, cfg.head_hidden
+    k = jax.random.split(key, 2 + len(DILATIONS) + 3)
+    params: dict = {
+        "down1": init_conv_gn(k[0], 3, cfg.feat_dim + 1, pw),
+        "down2": init_conv_gn(k[1], 3, pw, pw),
+        "dilated": [init_conv_gn(k[2 + i], 3, pw, pw) for i in range(len(DILATIONS))],
+    }
+    flat = _flat_size(cfg)
+    for name, out_dim, hk in zip(("rot", "xy", "z"), (cfg.emb_dim, 2, cfg.n_z_bins), k[-3:]):
+        k1, k2, k3 = jax.random.split(hk, 3)
+        params[name] = {
+            "conv": init_conv_gn(k1, 3, 8 * pw, pw),
+            "fc": init_dense(k2, flat, hh),
+            "fc_gn": init_gn(hh),
+            "out": init_dense(k3, hh, out_dim, scale=0.01),
+        }
+    return params
+
+
+def pose_decoder(
+    params: dict, cfg: ModelConfig, feat: jax.Array, mask_logit: jax.Array
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Returns (raw rotation feature (B,emb_dim), delta_xy (B,2), z logits (B,n_z_bins))."""
+    x = jnp.concatenate([feat, jax.nn.sigmoid(mask_logit)[..., None]], axis=-1)
+    x = conv_gn_relu(x, params["down1"], cfg, stride=2)
+    x = conv_gn_relu(x, params["down2"], cfg, stride=2)
+    branches = [x]
+    for d, p in zip(DILATIONS, params["dilated"]):
+        branches.append(conv_gn_relu(x, p, cfg, dilation=d))
+    branches.append(jnp.broadcast_to(jnp.mean(x, axis=(1, 2), keepdims=True), x.shape))
+    x = jnp.concatenate(branches, axis=-1)
+    outs = []
+    for name in ("rot", "xy", "z"):
+        p = params[name]
+        h = conv_gn_relu(x, p["conv"], cfg, stride=2)
+        h = h.reshape(h.shape[0], -1)
+        h = dense(h, p["fc"]["w"], p["fc"]["b"])
+        h = jax.nn.relu(group_norm(h, p["fc_gn"]["scale"], p["fc_gn"]["bias"], num_groups(h.shape[-1], cfg.gn_groups)))
+        outs.append(dense(h, p["out"]["w"], p["out"]["b"]))
+    return outs[0], outs[1], outs[2]
