@@ -190,3 +190,20 @@ def test_shape_errors():
         g.sixd_to_matrix(jnp.zeros(9))
     with pytest.raises(ValueError, match="R2 must have shape"):
         g.geodesic_angle(jnp.eye(3), jnp.zeros(9))
+
+
+def test_gradients_are_finite_at_singular_points():
+    """Losses may differentiate through these at identity / pi / along the optical axis."""
+    eye = jnp.eye(3)
+    checks = {
+        "geodesic@0": jax.grad(lambda R: g.geodesic_angle(eye, R))(eye),
+        "geodesic@pi": jax.grad(lambda R: g.geodesic_angle(eye, R))(g.rot_x(jnp.pi)),
+        "aa@0": jax.jacobian(g.axis_angle_to_matrix)(jnp.zeros(3)),
+        "log@0": jax.jacobian(g.matrix_to_axis_angle)(eye),
+        "sixd": jax.jacobian(g.sixd_to_matrix)(jnp.array([1.0, 0, 0, 0, 1, 0])),
+        "ray@axis": jax.jacobian(g.ray_rotation)(jnp.array([0.0, 0, 500])),
+    }
+    for name, grad in checks.items():
+        assert np.all(np.isfinite(np.asarray(grad))), name
+    # the exp map's Jacobian at 0 is the generator basis
+    np.testing.assert_allclose(checks["aa@0"][..., 0], g.skew(jnp.array([1.0, 0, 0])), atol=1e-12)

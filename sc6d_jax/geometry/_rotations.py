@@ -75,7 +75,8 @@ def matrix_to_quat(R: ArrayLike) -> Array:
     four = jnp.stack(
         [1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1
     )
-    q_abs = jnp.sqrt(jnp.maximum(four, 0))
+    pos = four > 0
+    q_abs = jnp.where(pos, jnp.sqrt(jnp.where(pos, four, 1)), 0)  # gradient-safe at 0
     cands = jnp.stack(
         [
             jnp.stack([four[..., 0], m21 - m12, m02 - m20, m10 - m01], -1),
@@ -240,7 +241,7 @@ def rotation_between(a: ArrayLike, b: ArrayLike) -> Array:
     un, _ = _safe_norm(u)
     ok = un > 1e-30
     u = jnp.where(ok[..., None], u / jnp.where(ok, un, 1.0)[..., None], _perpendicular(a))
-    sin = jnp.linalg.norm(v, axis=-1)
+    sin, _ = _safe_norm(v)
     Ux = skew(u)
     R_neg = eye + sin[..., None, None] * Ux + (1 - c)[..., None, None] * (Ux @ Ux)
     return jnp.where(pos[..., None, None], R_pos, R_neg)
