@@ -22,6 +22,7 @@ config, metrics and checkpoints; the run directory must be on a filesystem all p
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import sys
@@ -167,6 +168,14 @@ def make_train_step(
         rep = NamedSharding(mesh, PartitionSpec())
         kw["out_shardings"] = (rep, rep, rep)
     return jax.jit(step_fn, **kw)
+
+
+@functools.lru_cache(maxsize=8)
+def _cached_train_step(loss_fn: Callable[..., Any], cfg: TrainConfig, z_range: tuple[float, float], mesh: Any):
+    """make_train_step memoised on its (hashable) inputs, so that several runs of one config in
+    one process (tests, benchmarks) compile once.  The run-only fields do not matter."""
+    tx, _ = make_optimizer(cfg)
+    return make_train_step(loss_fn, cfg, tx, z_range, mesh)
 
 
 def initialize_distributed(coordinator_address: str, num_processes: int, process_id: int) -> None:
@@ -364,7 +373,7 @@ def train(
         params = _replicate(params, rep)
         opt_state = _replicate(opt_state, rep)
         base_key = _replicate(np.asarray(base_key), rep)
-        step_fn = make_train_step(model_fns.loss_fn, cfg, tx, z_range, mesh)
+        step_fn = _cached_train_step(model_fns.loss_fn, cfg.replace(checkpoint_every=1, keep_checkpoints=1, log_every=1), z_range, mesh)
 
         metrics_path = run_dir / "metrics.jsonl"
         extra_meta = {
