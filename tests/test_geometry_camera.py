@@ -12,7 +12,7 @@ from hypothesis.extra.numpy import arrays
 
 from sc6d_jax import geometry as g
 
-SETTINGS = settings(max_examples=20, deadline=None)
+SETTINGS = settings(max_examples=15, deadline=None)
 B = 8
 S = 64
 Z = np.array([0.0, 0.0, 1.0])

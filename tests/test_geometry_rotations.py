@@ -12,7 +12,7 @@ from hypothesis.extra.numpy import arrays
 
 from sc6d_jax import geometry as g
 
-SETTINGS = settings(max_examples=25, deadline=None)
+SETTINGS = settings(max_examples=15, deadline=None)
 B = 8  # fixed batch size: one compilation per function
 
 

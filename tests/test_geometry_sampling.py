@@ -70,6 +70,11 @@ def test_so3_grid_structure_and_determinism():
     np.testing.assert_allclose(diff, 0, atol=1e-5)
     offsets = np.arctan2(Gd[:, 0, 1, 0], Gd[:, 0, 0, 0])  # absolute rolls of k = 0 differ per view
     assert np.unique(np.round(offsets, 3)).size > nv // 2
+    # the numpy construction equals rot_z(roll) @ viewpoint_rotation(v, 0) (the jnp functions)
+    o = np.random.default_rng(3).uniform(0, 2 * np.pi, nv)
+    rolls = (np.arange(ni) + 1) / (ni + 1) * 2 * np.pi + o[:, None]
+    ref = np.asarray(g.rot_z(rolls)) @ np.asarray(g.viewpoint_rotation(views, 0.0))[:, None]
+    np.testing.assert_allclose(Gd, ref, atol=1e-6)
 
 
 def test_random_rotations_haar():
@@ -121,7 +126,7 @@ def test_covering_radius_bound_and_monotone():
     for nv, ni in ((150, 16), (600, 32)):
         G = g.so3_grid(nv, ni)
         r = g.covering_radius(G, key, 3000)
-        rho_views = _sphere_covering(g.fibonacci_sphere(nv), 100_000)
+        rho_views = _sphere_covering(g.fibonacci_sphere(nv), 20_000)
         assert r <= 1.02 * (rho_views + 2 * np.pi / (ni + 1)), (nv, ni, r, rho_views)
         rho = np.linspace(1e-3, np.pi, 100_000)
         volume_bound = rho[np.argmax(nv * ni * (rho - np.sin(rho)) / np.pi >= 1)]

@@ -87,11 +87,43 @@ def so3_grid(n_views: int = 4000, n_inplane: int = 120, seed: int = 0) -> np.nda
     k = np.arange(n_inplane, dtype=np.float64)
     angles = (k + 1.0) / (n_inplane + 1.0) * 2.0 * np.pi
     rolls = angles[None, :] + offsets[:, None]  # (n_views, n_inplane)
-    with jax.enable_x64(True):
-        base = rotation_between(jnp.asarray(views), jnp.asarray([0.0, 0.0, -1.0]))  # (V, 3, 3)
-        R = rot_z(jnp.asarray(rolls)) @ base[:, None]
-        out = np.asarray(R, dtype=np.float64)
-    return out.reshape(n_views * n_inplane, 3, 3).astype(np.float32)
+    base = _viewpoint_rotation_np(views)  # (V, 3, 3), equals viewpoint_rotation(views, 0)
+    c, s = np.cos(rolls), np.sin(rolls)
+    Rz = np.zeros(rolls.shape + (3, 3))
+    Rz[..., 0, 0], Rz[..., 0, 1], Rz[..., 1, 0], Rz[..., 1, 1], Rz[..., 2, 2] = c, -s, s, c, 1.0
+    R = Rz @ base[:, None]
+    return R.reshape(n_views * n_inplane, 3, 3).astype(np.float32)
+
+
+def _viewpoint_rotation_np(views: np.ndarray) -> np.ndarray:
+    """float64 numpy twin of ``viewpoint_rotation(views, 0)`` = ``rotation_between(views, -z)``
+    (same formulas and branches; no compilation, so building a 480k grid takes milliseconds)."""
+    a = views / np.linalg.norm(views, axis=-1, keepdims=True)
+    b = np.array([0.0, 0.0, -1.0])
+    v = np.cross(a, b)
+    c = a @ b
+
+    def skew_np(x: np.ndarray) -> np.ndarray:
+        o = np.zeros(x.shape[:-1])
+        return np.stack([np.stack([o, -x[..., 2], x[..., 1]], -1),
+                         np.stack([x[..., 2], o, -x[..., 0]], -1),
+                         np.stack([-x[..., 1], x[..., 0], o], -1)], -2)
+
+    eye = np.eye(3)
+    V = skew_np(v)
+    pos = c >= 0
+    R_pos = eye + V + (V @ V) / np.where(pos, 1 + c, 1.0)[:, None, None]
+    u = v - np.sum(v * a, axis=-1, keepdims=True) * a
+    un = np.linalg.norm(u, axis=-1)
+    ok = un > 1e-30
+    # fallback axis: a crossed with the least-aligned coordinate axis (as in rotation_between)
+    e = np.eye(3)[np.argmin(np.abs(a), axis=-1)]
+    perp = np.cross(a, e)
+    perp /= np.linalg.norm(perp, axis=-1, keepdims=True)
+    u = np.where(ok[:, None], u / np.where(ok, un, 1.0)[:, None], perp)
+    U = skew_np(u)
+    R_neg = eye + np.linalg.norm(v, axis=-1)[:, None, None] * U + (1 - c)[:, None, None] * (U @ U)
+    return np.where(pos[:, None, None], R_pos, R_neg)
 
 
 def random_rotations(key: Array, n: int, dtype: jnp.dtype = jnp.float32) -> Array:
