@@ -5,5 +5,6 @@ object's CAD model at inference and without prior knowledge of its symmetries.
 """
 
 from sc6d_jax._version import __version__
+from sc6d_jax.inference import Estimator
 
-__all__ = ["__version__"]
+__all__ = ["Estimator", "__version__"]

@@ -1,6 +1,7 @@
 """Inference: rotation library, jitted predictor (TTA, refinement), Estimator, export."""
 
 from sc6d_jax.inference._estimator import Estimator, PosePrediction, bucket_size
+from sc6d_jax.inference._export import export_predictor, load_exported
 from sc6d_jax.inference._library import (
     LIBRARY_GRIDS,
     RotationLibrary,
@@ -21,7 +22,9 @@ __all__ = [
     "RotationLibrary",
     "auto_block",
     "bucket_size",
+    "export_predictor",
     "library_grid",
+    "load_exported",
     "library_key",
     "load_or_build_library",
     "match",

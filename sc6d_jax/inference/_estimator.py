@@ -222,6 +222,13 @@ class Estimator:
             )
         return res
 
+    def export(self, path: str | os.PathLike, tta: bool = False, top_k: int = 1) -> Path:
+        """Serialise the predictor (crops in, poses out; params and library baked into the file)
+        with ``jax.export``; run it with :func:`sc6d_jax.inference.load_exported`."""
+        from sc6d_jax.inference._export import export_predictor
+
+        return export_predictor(self, path, tta=tta, top_k=top_k)
+
     def predict_crops(
         self, rgb: np.ndarray, K: np.ndarray, center: np.ndarray, side: np.ndarray, obj_idx: np.ndarray,
         tta: bool = False, top_k: int = 1, refine: bool = False,

@@ -1,0 +1,279 @@
+"""``sc6d predict``: poses for a BOP dataset (results CSV) or for one image (JSON + overlay PNG).
+
+Dataset mode::
+
+    sc6d predict --run RUN --dataset DIR [--split test] --out RESULTS.csv [--tta] [--refine]
+                 [--library-size N] [--detections FILE]
+
+Every target of ``test_targets_bop19.json``; boxes are the ground-truth visible boxes
+(``scene_gt_info`` ``bbox_visib``, the ``inst_count`` instances with the most visible pixels)
+unless ``--detections`` gives a BOP detection JSON (``scene_id, image_id, category_id, bbox,
+score``; the ``inst_count`` best-scoring detections). The estimate's score is the detection
+score when there is one, else the rotation's cosine. ``time`` is the wall time of the image.
+
+Image mode::
+
+    sc6d predict --run RUN --image IMG --camera K.json --boxes BOXES.json [--obj-ids 1,5]
+                 [--overlay OUT.png]
+
+``K.json``: ``{"cam_K": [9 numbers]}``, ``{"K": [[...],[...],[...]]}`` or a 3x3 list.
+``BOXES.json``: a list of ``[x, y, w, h]`` (then ``--obj-ids`` gives the ids) or of objects
+``{"bbox": [...], "obj_id": ID}`` (``category_id`` accepted). Prints the poses as JSON and
+writes an overlay PNG (model points at the estimated pose from the models folder recorded in the
+run, or the object axes when it is not available).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="sc6d predict", description=__doc__.split("\n\n")[0])
+    p.add_argument("--run", required=True, type=Path, help="training run directory")
+    p.add_argument("--dataset", type=Path, default=None, help="BOP dataset folder (dataset mode)")
+    p.add_argument("--split", default="test", help="dataset split folder (default: test)")
+    p.add_argument("--out", type=Path, default=None, help="results CSV (dataset mode)")
+    p.add_argument("--detections", type=Path, default=None, help="BOP detection JSON instead of GT visible boxes")
+    p.add_argument("--image", type=Path, default=None, help="one RGB image (image mode)")
+    p.add_argument("--camera", type=Path, default=None, help="JSON with the 3x3 K of the image")
+    p.add_argument("--boxes", type=Path, default=None, help="JSON list of boxes (x, y, w, h)")
+    p.add_argument("--obj-ids", default=None, help="comma-separated BOP object ids, one per box")
+    p.add_argument("--overlay", type=Path, default=None, help="overlay PNG (default IMAGE_STEM_poses.png)")
+    p.add_argument("--tta", action="store_true", help="4-fold in-plane rotation test-time augmentation")
+    p.add_argument("--refine", action="store_true", help="continuous rotation refinement (BFGS)")
+    p.add_argument("--top-k", type=int, default=1, help="rotations per box in the JSON output (image mode)")
+    p.add_argument("--library-size", type=int, default=480_000, help="rotation library size (20000..1440000)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    return p
+
+
+def main(argv: list[str]) -> int:
+    args = _parser().parse_args(argv)
+    if (args.dataset is None) == (args.image is None):
+        raise ValueError("give either --dataset (with --out) or --image (with --camera and --boxes)")
+    from sc6d_jax.inference import Estimator
+
+    if args.dataset is not None:
+        if args.out is None:
+            raise ValueError("--dataset needs --out RESULTS.csv")
+        if not args.dataset.is_dir():
+            raise FileNotFoundError(f"dataset folder {args.dataset} does not exist")
+        est = Estimator.load(args.run, library_size=args.library_size, progress=not args.no_progress)
+        return predict_dataset(est, args)
+    for name in ("camera", "boxes"):
+        if getattr(args, name) is None:
+            raise ValueError(f"--image needs --{name}")
+    est = Estimator.load(args.run, library_size=args.library_size, progress=not args.no_progress)
+    return predict_image(est, args)
+
+
+# ---------------------------------------------------------------------------- dataset mode
+def _read_detections(path: Path) -> dict[tuple[int, int], list[tuple[int, np.ndarray, float]]]:
+    try:
+        dets = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"detections file {path} is not valid JSON: {exc}") from exc
+    if not isinstance(dets, list):
+        raise ValueError(f"detections file {path} must hold a JSON list")
+    out: dict[tuple[int, int], list] = defaultdict(list)
+    for i, d in enumerate(dets):
+        try:
+            key = (int(d["scene_id"]), int(d["image_id"]))
+            box = np.asarray(d["bbox"], np.float64)
+            out[key].append((int(d["category_id"]), box, float(d.get("score", 1.0))))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"detection {i} of {path} is malformed ({exc}): {d!r}") from exc
+    return out
+
+
+def predict_dataset(est, args) -> int:
+    from tqdm import tqdm
+
+    from sc6d_jax.bop import BopDataset, PoseEstimate, write_results_csv
+
+    ds = BopDataset(args.dataset, split=args.split)
+    targets = ds.targets()
+    per_image: dict[tuple[int, int], list] = defaultdict(list)
+    for t in targets:
+        per_image[(t.scene_id, t.im_id)].append(t)
+    dets = _read_detections(args.detections) if args.detections else None
+    known = set(est.obj_ids)
+    estimates: list = []
+    skipped_unknown = 0
+    cams: dict[int, dict] = {}
+    infos: dict[int, tuple[dict, dict]] = {}
+    for (scene_id, im_id), tgts in tqdm(sorted(per_image.items()), desc="predict", unit="img",
+                                         disable=args.no_progress, file=sys.stderr):
+        if scene_id not in cams:
+            cams[scene_id] = ds.scene_camera(scene_id)
+            if dets is None:
+                infos[scene_id] = (ds.scene_gt(scene_id), ds.scene_gt_info(scene_id))
+        boxes, ids, scores = [], [], []
+        for tg in tgts:
+            if tg.obj_id not in known:
+                skipped_unknown += 1
+                continue
+            if dets is None:
+                gts, gtis = infos[scene_id][0].get(im_id, []), infos[scene_id][1].get(im_id, [])
+                cand = [(gi.px_count_visib, np.asarray(gi.bbox_visib, np.float64), None)
+                        for g, gi in zip(gts, gtis) if g.obj_id == tg.obj_id and gi.bbox_visib[2] > 0 and gi.bbox_visib[3] > 0]
+            else:
+                cand = [(s, b, s) for (o, b, s) in dets.get((scene_id, im_id), []) if o == tg.obj_id and b[2] > 0 and b[3] > 0]
+            cand.sort(key=lambda c: -c[0])
+            for _, b, s in cand[: tg.inst_count]:
+                boxes.append(b)
+                ids.append(tg.obj_id)
+                scores.append(s)
+        if not boxes:
+            continue
+        t0 = time.perf_counter()
+        image = ds.load_rgb(scene_id, im_id)
+        K = cams[scene_id][im_id].K
+        h, w = image.shape[:2]
+        bx = np.asarray(boxes, np.float64)
+        # clip boxes to the image (detections may reach outside it)
+        x0, y0 = np.clip(bx[:, 0], 0, w - 1), np.clip(bx[:, 1], 0, h - 1)
+        x1, y1 = np.clip(bx[:, 0] + bx[:, 2], x0 + 1, w), np.clip(bx[:, 1] + bx[:, 3], y0 + 1, h)
+        bx = np.stack([x0, y0, x1 - x0, y1 - y0], axis=1)
+        preds = est.predict(image, K, bx, ids, tta=args.tta, refine=args.refine)
+        dt = time.perf_counter() - t0
+        for p, s in zip(preds, scores):
+            estimates.append(PoseEstimate(scene_id=scene_id, im_id=im_id, obj_id=p.obj_id,
+                                          score=float(s if s is not None else p.score), R=p.R.astype(np.float64),
+                                          t=p.t.astype(np.float64), time=dt))
+    write_results_csv(args.out, estimates)
+    msg = f"sc6d predict: {len(estimates)} estimates for {len(per_image)} images -> {args.out}"
+    if skipped_unknown:
+        msg += f" ({skipped_unknown} targets of objects the model does not know were skipped)"
+    print(msg, file=sys.stderr)
+    return 0
+
+
+# ---------------------------------------------------------------------------- image mode
+def _read_json(path: Path, what: str):
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError as exc:
+        raise FileNotFoundError(f"{what} file {path} does not exist") from exc
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{what} file {path} is not valid JSON: {exc}") from exc
+
+
+def read_camera(path: Path) -> np.ndarray:
+    """K (3x3) from ``{"cam_K": [9]}``, ``{"K": 3x3}`` or a bare 3x3 / 9 list."""
+    d = _read_json(path, "camera")
+    if isinstance(d, dict):
+        d = d.get("cam_K", d.get("K"))
+    try:
+        K = np.asarray(d, np.float64).reshape(3, 3)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"camera file {path} must hold cam_K (9 numbers) or K (3x3)") from exc
+    return K
+
+
+def read_boxes(path: Path, obj_ids: str | None) -> tuple[np.ndarray, list[int]]:
+    d = _read_json(path, "boxes")
+    if not isinstance(d, list):
+        raise ValueError(f"boxes file {path} must hold a JSON list")
+    ids_arg = [int(v) for v in obj_ids.split(",") if v.strip()] if obj_ids else None
+    boxes, ids = [], []
+    for i, b in enumerate(d):
+        if isinstance(b, dict):
+            if "bbox" not in b:
+                raise ValueError(f"box {i} of {path} has no 'bbox'")
+            boxes.append(b["bbox"])
+            oid = b.get("obj_id", b.get("category_id"))
+            ids.append(None if oid is None else int(oid))
+        else:
+            boxes.append(b)
+            ids.append(None)
+    if ids_arg is not None:
+        if len(ids_arg) != len(boxes):
+            raise ValueError(f"--obj-ids gives {len(ids_arg)} ids for {len(boxes)} boxes")
+        ids = ids_arg
+    if any(i is None for i in ids):
+        raise ValueError("every box needs an object id (in the boxes file or with --obj-ids)")
+    try:
+        arr = np.asarray(boxes, np.float64).reshape(-1, 4)
+    except ValueError as exc:
+        raise ValueError(f"boxes in {path} must be [x, y, w, h]") from exc
+    return arr, ids
+
+
+def draw_overlay(image: np.ndarray, K: np.ndarray, preds, models_dir: str | None) -> np.ndarray:
+    """RGB image with the model points (or axes) of each estimate projected, and its box."""
+    import cv2
+
+    from sc6d_jax.bop import load_model_points
+
+    out = image.copy()
+    colors = [(255, 64, 64), (64, 255, 64), (64, 128, 255), (255, 255, 0), (255, 0, 255), (0, 255, 255)]
+    for n, p in enumerate(preds):
+        col = colors[n % len(colors)]
+        pts = None
+        if models_dir:
+            try:
+                pts = load_model_points(models_dir, p.obj_id)
+            except (FileNotFoundError, ValueError):
+                pts = None
+        if pts is not None and len(pts):
+            pts = pts[np.random.default_rng(0).permutation(len(pts))[:2000]]
+            cam = pts @ p.R.T + p.t
+            cam = cam[cam[:, 2] > 1e-6]
+            uv = cam @ K.T
+            uv = uv[:, :2] / uv[:, 2:3]
+            for u, v in uv:
+                if 0 <= u < out.shape[1] and 0 <= v < out.shape[0]:
+                    out[int(round(v)), int(round(u))] = col
+        else:  # axes, 0.5 x box size at the estimated depth
+            L = 0.5 * max(p.box[2], p.box[3]) * p.t[2] / K[0, 0]
+            ends = np.vstack([np.zeros(3), L * np.eye(3)]) @ p.R.T + p.t
+            uv = ends @ K.T
+            uv = uv[:, :2] / uv[:, 2:3]
+            for a, c in zip(range(1, 4), [(255, 0, 0), (0, 255, 0), (0, 0, 255)]):
+                if np.all(np.isfinite(uv)):
+                    cv2.line(out, tuple(int(v) for v in uv[0]), tuple(int(v) for v in uv[a]), c, 2)
+        x, y, w, h = (int(round(v)) for v in p.box)
+        cv2.rectangle(out, (x, y), (x + w, y + h), col, 1)
+    return out
+
+
+def predict_image(est, args) -> int:
+    import cv2
+
+    from sc6d_jax._io import atomic_write_bytes
+
+    if not args.image.is_file():
+        raise FileNotFoundError(f"image {args.image} does not exist")
+    bgr = cv2.imread(str(args.image), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise ValueError(f"cannot read image {args.image}")
+    image = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    K = read_camera(args.camera)
+    boxes, ids = read_boxes(args.boxes, args.obj_ids)
+    preds = est.predict(image, K, boxes, ids, tta=args.tta, top_k=args.top_k, refine=args.refine)
+    rows = [
+        {"obj_id": p.obj_id, "bbox": p.box.tolist(), "R": p.R.astype(float).tolist(), "t": p.t.astype(float).tolist(),
+         "score": p.score, "prob": p.prob,
+         "top_k": [{"R": r.astype(float).tolist(), "prob": float(pr), "score": float(s)}
+                   for r, pr, s in zip(p.R_topk, p.prob_topk, p.score_topk)]}
+        for p in preds
+    ]
+    print(json.dumps({"image": str(args.image), "poses": rows}, indent=1))
+    overlay = args.overlay or Path(f"{args.image.stem}_poses.png")
+    ok, png = cv2.imencode(".png", cv2.cvtColor(draw_overlay(image, K, preds, est.models_dir), cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise ValueError(f"cannot encode the overlay PNG {overlay}")
+    atomic_write_bytes(overlay, png.tobytes())
+    print(f"sc6d predict: overlay -> {overlay}", file=sys.stderr)
+    return 0

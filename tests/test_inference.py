@@ -1,0 +1,227 @@
+"""Estimator: predict shapes and types, no recompilation, TTA / refinement, bad input, export,
+the library cache, the TTA rotation convention and the ``sc6d predict`` CLI."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sc6d_jax import Estimator
+from sc6d_jax.inference import load_exported, load_or_build_library, predict_crops, rotate_crops, rz90
+from sc6d_jax.inference._library import library_key
+
+OBJ_IDS = (1, 2, 3)
+LIB = 480  # 4 views x 120 in-plane rotations: small, so the tests compile and run fast
+
+
+def _is_rotation(R, atol=1e-4):
+    R = np.asarray(R, np.float64)
+    eye = np.broadcast_to(np.eye(3), R.shape)
+    return np.allclose(R @ np.swapaxes(R, -1, -2), eye, atol=atol) and np.allclose(np.linalg.det(R), 1.0, atol=atol)
+
+
+@pytest.fixture(scope="session")
+def run_dir(tmp_path_factory):
+    """A run directory holding one checkpoint of a freshly initialised tiny model (3 objects)."""
+    from sc6d_jax.model import init
+    from sc6d_jax.train import StreamSettings, preset, save_checkpoint
+
+    cfg = preset("tiny")
+    cfg = cfg.replace(
+        model=dataclasses.replace(cfg.model, n_objects=len(OBJ_IDS)),
+        stream=StreamSettings(batch_size=16, obj_ids=OBJ_IDS),
+        z_range=(20.0, 400.0),
+    )
+    params = init(jax.random.PRNGKey(0), cfg.model)
+    d = tmp_path_factory.mktemp("run")
+    save_checkpoint(d, 1, params, {}, np.zeros(2, np.uint32), cfg.to_dict(), extra_meta={"models_dir": None})
+    return d
+
+
+@pytest.fixture(scope="session")
+def est(run_dir):
+    return Estimator.load(run_dir, library_size=LIB, progress=False)
+
+
+@pytest.fixture(scope="session")
+def scene():
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 256, (96, 128, 3), dtype=np.uint8)
+    K = np.array([[120.0, 0, 64], [0, 120.0, 48], [0, 0, 1]])
+    boxes = np.array([[10, 10, 30, 40], [50, 20, 20, 20], [0, 0, 100, 90]], float)
+    return image, K, boxes, [1, 3, 3]
+
+
+def test_predict_types_and_no_recompilation(est, scene):
+    image, K, boxes, ids = scene
+    out = est.predict(image, K, boxes, ids, top_k=3)
+    assert len(out) == 3
+    for p, oid in zip(out, ids):
+        assert p.obj_id == oid
+        assert p.R.shape == (3, 3) and p.t.shape == (3,) and p.R_topk.shape == (3, 3, 3)
+        assert p.prob_topk.shape == (3,) and p.score_topk.shape == (3,)
+        assert _is_rotation(p.R) and _is_rotation(p.R_topk)
+        assert np.all(np.isfinite(p.t)) and p.t[2] > 0
+        assert -1.0 - 1e-5 <= p.score <= 1.0 + 1e-5 and 0.0 < p.prob <= 1.0
+        assert np.all(np.diff(p.score_topk) <= 1e-6)
+        np.testing.assert_allclose(p.R, p.R_topk[0])
+    n0 = predict_crops._cache_size()
+    # same bucket (4 boxes) with other boxes and objects: no new compilation
+    out2 = est.predict(image, K, boxes[::-1] + 1, [2, 2, 1], top_k=3)
+    assert predict_crops._cache_size() == n0
+    assert len(out2) == 3
+    # the same crop alone gives the same pose as in a batch (padding does not leak)
+    single = est.predict(image, K, boxes[:1], ids[:1], top_k=3)[0]
+    np.testing.assert_allclose(single.R, out[0].R, atol=1e-4)
+    np.testing.assert_allclose(single.t, out[0].t, rtol=1e-4)
+
+
+def test_grayscale_and_empty(est, scene):
+    image, K, boxes, ids = scene
+    assert est.predict(image, K, np.zeros((0, 4)), []) == []
+    gray = image[:, :, 0]
+    a = est.predict(gray, K, boxes[:1], ids[:1])[0]
+    b = est.predict(np.repeat(gray[:, :, None], 3, axis=2), K, boxes[:1], ids[:1])[0]
+    np.testing.assert_allclose(a.R, b.R)
+
+
+def test_tta_and_refine_return_valid_rotations(est, scene):
+    image, K, boxes, ids = scene
+    plain = est.predict(image, K, boxes, ids)
+    out = est.predict(image, K, boxes, ids, tta=True, refine=True)
+    for p, q in zip(out, plain):
+        assert _is_rotation(p.R, atol=1e-3) and np.all(np.isfinite(p.t)) and p.t[2] > 0
+        assert p.score >= -1.0
+    # refinement never lowers the cosine of the copy it starts from (TTA's best copy >= copy 0)
+    assert all(p.score >= q.score - 1e-5 for p, q in zip(out, plain))
+
+
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        (dict(image=np.zeros((96, 128, 3), np.float32)), "uint8"),
+        (dict(image=np.zeros((96, 128, 4), np.uint8)), "HxWx3"),
+        (dict(K=np.eye(4)), "3x3"),
+        (dict(K=np.array([[np.nan, 0, 1], [0, 1, 1], [0, 0, 1]])), "NaN|finite"),
+        (dict(boxes=np.array([[10, 10, 0, 5.0]])), "positive width"),
+        (dict(boxes=np.array([[500, 10, 5, 5.0]])), "outside"),
+        (dict(boxes=np.array([[np.nan, 10, 5, 5.0]])), "NaN|finite"),
+        (dict(boxes=np.array([10, 10, 5, 5.0])), "N x 4"),
+        (dict(obj_ids=[7]), "unknown object"),
+        (dict(obj_ids=[1, 2]), "obj_ids"),
+    ],
+)
+def test_bad_input_raises_before_compiling(est, scene, change, match):
+    image, K, boxes, ids = scene
+    kw = dict(image=image, K=K, boxes=boxes[:1], obj_ids=ids[:1])
+    kw.update(change)
+    n0 = predict_crops._cache_size()
+    with pytest.raises(ValueError, match=match):
+        est.predict(**kw)
+    assert predict_crops._cache_size() == n0
+
+
+def test_export_round_trip(est, scene, tmp_path):
+    image, K, boxes, ids = scene
+    path = est.export(tmp_path / "predictor.npz")
+    f = load_exported(path)
+    assert f.meta["obj_ids"] == list(OBJ_IDS)
+    crops, center, side = est.make_crops(image, boxes, len(boxes))
+    idx = est.obj_index(ids)
+    Kb = np.broadcast_to(K, (len(boxes), 3, 3))
+    got = f(crops, Kb, center, side, idx)
+    ref = est.predict_crops(crops, Kb, center, side, idx)
+    np.testing.assert_allclose(got["R"], ref["R"], atol=1e-5)
+    np.testing.assert_allclose(got["t"], ref["t"], rtol=1e-5)
+    with pytest.raises(ValueError, match="uint8"):
+        f(crops.astype(np.float32), Kb, center, side, idx)
+
+
+def test_library_cache_and_key(run_dir, est):
+    files = list((run_dir / "library").glob("so3lib_*.npz"))
+    assert len(files) == 1 and est.library.key in files[0].name
+    lib2 = load_or_build_library(est.params, est.mcfg, LIB, cache_dir=run_dir / "library", progress=False)
+    np.testing.assert_array_equal(lib2.emb, est.library.emb)
+    # embeddings are unit vectors of the model's SO(3) encoder
+    from sc6d_jax.model import encode_rotations
+
+    e = encode_rotations(est.params, est.mcfg, jnp.asarray(est.library.R[:5]), 2)
+    np.testing.assert_allclose(est.library.emb[2, :5], np.asarray(e), atol=1e-6)
+    # another model or another grid -> another key
+    p2 = jax.tree.map(lambda a: a, est.params)
+    p2["rot_head"] = jax.tree.map(lambda a: a + 1e-3, p2["rot_head"])
+    assert library_key(p2, est.mcfg, est.library.grid) != est.library.key
+    assert library_key(est.params, est.mcfg, (4, 121, 0)) != est.library.key
+
+
+def test_tta_rotation_matches_rz90():
+    """Turning the object by Rz(90 k) about the optical axis = rotate_crops(crop, k)."""
+    S, f = 33, 40.0
+    c = (S - 1) / 2
+    K = np.array([[f, 0, c], [0, f, c], [0, 0, 1]])
+    pts = np.random.default_rng(1).normal(size=(40, 3)) * 8
+    t = np.array([0, 0, 100.0])
+
+    def render(R):
+        img = np.zeros((S, S, 1), np.float32)
+        uv = (pts @ R.T + t) @ K.T
+        uv = np.round(uv[:, :2] / uv[:, 2:3]).astype(int)
+        img[uv[:, 1], uv[:, 0], 0] = 1
+        return img
+
+    from scipy.spatial.transform import Rotation
+
+    R0 = Rotation.from_rotvec([0.3, -0.5, 0.2]).as_matrix()
+    for k in range(4):
+        a = np.asarray(rotate_crops(jnp.asarray(render(R0))[None], k))[0]
+        b = render(np.asarray(rz90(k)) @ R0)
+        np.testing.assert_array_equal(a, b)
+
+
+def test_predict_cli_on_bop_dataset(run_dir, shared_data, tmp_path, capsys):
+    from sc6d_jax.bop import read_results_csv
+    from sc6d_jax.inference.cli import main as predict_main
+    from sc6d_jax.metrics.cli import main as eval_main
+
+    ds = shared_data / "bop_reference" / "tudl"
+    out = tmp_path / "sc6d_tudl-test.csv"
+    # the library was cached by the session's Estimator: same size -> no rebuild
+    assert predict_main(["--run", str(run_dir), "--dataset", str(ds), "--out", str(out),
+                         "--library-size", "480", "--no-progress"]) == 0
+    est = read_results_csv(out)
+    assert len(est) > 0 and all(np.isfinite(e.t).all() and _is_rotation(e.R, 1e-3) for e in est)
+    per_image = {}
+    for e in est:
+        per_image.setdefault((e.scene_id, e.im_id), set()).add(e.time)
+    assert all(len(v) == 1 for v in per_image.values())
+    scores = tmp_path / "scores.json"
+    assert eval_main(["--dataset", str(ds), "--results", str(out), "--out", str(scores), "--no-vsd",
+                      "--no-progress"]) == 0
+    s = json.loads(scores.read_text())
+    assert any("mssd" in k.lower() for k in s)
+
+
+def test_predict_cli_image_mode(run_dir, scene, tmp_path, capsys):
+    import cv2
+
+    from sc6d_jax.inference.cli import main as predict_main
+
+    image, K, boxes, ids = scene
+    cv2.imwrite(str(tmp_path / "im.png"), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    (tmp_path / "K.json").write_text(json.dumps({"cam_K": K.reshape(-1).tolist()}))
+    (tmp_path / "boxes.json").write_text(json.dumps(boxes.tolist()))
+    rc = predict_main(["--run", str(run_dir), "--image", str(tmp_path / "im.png"), "--camera", str(tmp_path / "K.json"),
+                       "--boxes", str(tmp_path / "boxes.json"), "--obj-ids", "1,3,3", "--library-size", "480",
+                       "--overlay", str(tmp_path / "ov.png"), "--no-progress"])
+    assert rc == 0
+    poses = json.loads(capsys.readouterr().out)["poses"]
+    assert [p["obj_id"] for p in poses] == ids
+    assert (tmp_path / "ov.png").is_file()
+    with pytest.raises(ValueError, match="obj-ids"):
+        predict_main(["--run", str(run_dir), "--image", str(tmp_path / "im.png"), "--camera", str(tmp_path / "K.json"),
+                      "--boxes", str(tmp_path / "boxes.json"), "--obj-ids", "1", "--library-size", "480"])
