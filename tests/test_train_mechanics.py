@@ -125,6 +125,14 @@ class StandinStream:
         self.closed = True
 
 
+def standin_load_weights(params, cfg, path):
+    with np.load(path) as z:
+        w = z["fc1.weight"].T
+    if w.shape != params["fc1"]["w"].shape:
+        raise ValueError(f"{path}: fc1.weight has the wrong shape")
+    return {**params, "fc1": {**params["fc1"], "w": w}}
+
+
 def standin_fns(delay: float = 0.0, nan_batch: int = -1):
     from sc6d_jax.train import DataFns, ModelFns
 
@@ -132,7 +140,7 @@ def standin_fns(delay: float = 0.0, nan_batch: int = -1):
         return StandinStreamConfig(**kw, delay=delay, nan_batch=nan_batch)
 
     return (
-        ModelFns(standin_init, standin_loss, None),
+        ModelFns(standin_init, standin_loss, standin_load_weights),
         DataFns(stream_config, StandinStream, lambda cfg: (0.1, 1.0)),
     )
 
@@ -148,7 +156,8 @@ def standin_config(steps: int = 20, **kw):
     return TrainConfig(**base)
 
 
-def _run_standin(out: Path, steps: int, delay: float = 0.0, nan_batch: int = -1, resume: bool = False, **kw):
+def _run_standin(out: Path, steps: int, delay: float = 0.0, nan_batch: int = -1, resume: bool = False,
+                 init_weights: Path | None = None, **kw):
     from sc6d_jax.train import train
 
     mf, df = standin_fns(delay, nan_batch)
@@ -156,7 +165,7 @@ def _run_standin(out: Path, steps: int, delay: float = 0.0, nan_batch: int = -1,
     models = out.parent / "models"
     models.mkdir(exist_ok=True)
     return train(standin_config(steps, **kw), models, out, resume=resume, progress=False, verbose=False,
-                 model_fns=mf, data_fns=df)
+                 model_fns=mf, data_fns=df, init_weights=init_weights)
 
 
 def _save_params(params, path: Path) -> None:
@@ -241,6 +250,28 @@ def test_run_writes_config_metrics_checkpoints_and_is_deterministic(tmp_path):
     # a different seed gives different parameters
     p3 = _run_standin(tmp_path / "c" / "run", 12, seed=4)
     assert not np.array_equal(np.asarray(p3["fc1"]["w"]), np.asarray(p1["fc1"]["w"]))
+
+
+def test_init_weights_are_loaded_on_fresh_runs_only(tmp_path):
+    import jax
+
+    from sc6d_jax.train import OptimConfig
+    from sc6d_jax.train.checkpoint import checkpoint_dirs, read_meta
+
+    w = np.full((StandinModelConfig().hidden, 48), 0.5, np.float32)  # torch-like (out, in)
+    np.savez(tmp_path / "w.npz", **{"fc1.weight": w})
+    run = tmp_path / "w" / "run"
+    p = _run_standin(run, 1, init_weights=tmp_path / "w.npz", optim=OptimConfig(lr=1e-9, lr_end=0.0))
+    np.testing.assert_allclose(np.asarray(p["fc1"]["w"]), w.T, atol=1e-6)  # loaded, barely moved
+    assert read_meta(checkpoint_dirs(run)[-1][1])["init_weights"] == str(tmp_path / "w.npz")
+    fresh = standin_init(jax.random.split(jax.random.PRNGKey(3))[0], StandinModelConfig(n_objects=2))
+    assert not np.allclose(np.asarray(fresh["fc1"]["w"]), w.T)
+    with pytest.raises(FileNotFoundError, match="initial weights"):
+        _run_standin(tmp_path / "w2" / "run", 1, init_weights=tmp_path / "nope.npz")
+    np.savez(tmp_path / "bad.npz", **{"fc1.weight": w[:3]})
+    with pytest.raises(ValueError, match="wrong shape"):
+        _run_standin(tmp_path / "w3" / "run", 1, init_weights=tmp_path / "bad.npz")
+    assert not checkpoint_dirs(tmp_path / "w3" / "run")
 
 
 def test_checkpoint_roundtrip_and_corruption(tmp_path):

@@ -99,7 +99,11 @@ class DataFns(NamedTuple):
 def _default_model_fns() -> ModelFns:
     from sc6d_jax import model
 
-    return ModelFns(model.init, model.loss_fn, getattr(model, "load_resnet_weights", None))
+    def load_weights(params: Any, model_cfg: Any, path: Path) -> Any:
+        del model_cfg
+        return model.load_resnet_weights(params, path)
+
+    return ModelFns(model.init, model.loss_fn, load_weights)
 
 
 def _default_data_fns() -> DataFns:
