@@ -18,6 +18,7 @@ from ._losses import (
     loss_fn,
     predict_z,
 )
+from ._weights import load_resnet_weights
 from ._rotation import encode_rotations, rotation_features, rotation_logits
 
 __all__ = [
@@ -40,6 +41,7 @@ __all__ = [
     "group_norm",
     "im2col",
     "init",
+    "load_resnet_weights",
     "normalize_rgb",
     "rotation_features",
     "rotation_logits",

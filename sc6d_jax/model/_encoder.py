@@ -16,9 +16,20 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._config import ModelConfig
-from ._layers import conv2d, group_norm, init_conv, init_gn, num_groups, upsample2x_bilinear
+from ._layers import (
+    conv2d,
+    group_norm,
+    init_conv,
+    init_gn,
+    normal,
+    num_groups,
+    split,
+    stack_trees,
+    upsample2x_bilinear,
+)
 
 
 def conv_gn_relu(
@@ -30,15 +41,15 @@ def conv_gn_relu(
     return jax.nn.relu(y) if relu else y
 
 
-def init_conv_gn(key: jax.Array, k: int, cin: int, cout: int) -> dict:
+def init_conv_gn(key: np.random.Generator, k: int, cin: int, cout: int) -> dict:
     return {"conv": init_conv(key, k, cin, cout), "gn": init_gn(cout)}
 
 
-def _init_block(key: jax.Array, cin: int, cout: int, stride: int) -> dict:
-    k1, k2, k3 = jax.random.split(key, 3)
+def _init_block(key: np.random.Generator, cin: int, cout: int, stride: int) -> dict:
+    k1, k2, k3 = split(key, 3)
     p = {"conv1": init_conv_gn(k1, 3, cin, cout), "conv2": init_conv_gn(k2, 3, cout, cout)}
     # Residual branches start near zero (zero-init of the last GN scale) for stable training.
-    p["conv2"]["gn"]["scale"] = jnp.zeros((cout,), jnp.float32)
+    p["conv2"]["gn"]["scale"] = np.zeros((cout,), np.float32)
     if stride != 1 or cin != cout:
         p["down"] = init_conv_gn(k3, 1, cin, cout)
     return p
@@ -51,14 +62,14 @@ def _block(x: jax.Array, p: dict, cfg: ModelConfig, stride: int) -> jax.Array:
     return jax.nn.relu(y + sc)
 
 
-def init_backbone(key: jax.Array, cfg: ModelConfig) -> dict:
+def init_backbone(key: np.random.Generator, cfg: ModelConfig) -> dict:
     """ResNet params: {'stem': conv_gn, 'layer1'..'layer4': [block, ...]}."""
-    keys = jax.random.split(key, 5)
+    keys = split(key, 5)
     widths = cfg.stage_widths
     params: dict = {"stem": init_conv_gn(keys[0], cfg.stem_kernel, cfg.in_channels, widths[0])}
     cin = widths[0]
     for s, (n_blocks, cout) in enumerate(zip(cfg.stage_blocks, widths)):
-        bkeys = jax.random.split(keys[s + 1], n_blocks)
+        bkeys = split(keys[s + 1], n_blocks)
         blocks = []
         for i in range(n_blocks):
             stride = 2 if (i == 0 and s > 0) else 1
@@ -79,10 +90,10 @@ def backbone(params: dict, cfg: ModelConfig, x: jax.Array) -> list[jax.Array]:
     return feats
 
 
-def _init_decoder_one(key: jax.Array, cfg: ModelConfig) -> dict:
+def _init_decoder_one(key: np.random.Generator, cfg: ModelConfig) -> dict:
     _, c2, c3, c4 = cfg.stage_widths
     dw = cfg.dec_width
-    k = jax.random.split(key, 6)
+    k = split(key, 6)
     last = init_conv(k[5], 1, dw // 2, cfg.feat_dim + 1, bias=True)
     return {
         "lat4": init_conv_gn(k[0], 1, c4, c4),
@@ -94,17 +105,16 @@ def _init_decoder_one(key: jax.Array, cfg: ModelConfig) -> dict:
     }
 
 
-def init_decoder(key: jax.Array, cfg: ModelConfig) -> dict:
+def init_decoder(key: np.random.Generator, cfg: ModelConfig) -> dict:
     """U-Net decoder params. Per object: every leaf has a leading axis of size n_objects.
     Shared: one decoder plus 'obj_embed' (n_objects, C4) added to the layer4 features."""
     if cfg.dec_width < 2:
         raise ValueError(f"decoder width must be >= 2, got {cfg.dec_width}")
     if cfg.per_object_decoder:
-        keys = jax.random.split(key, cfg.n_objects)
-        return jax.vmap(lambda k: _init_decoder_one(k, cfg))(keys)
-    k1, k2 = jax.random.split(key)
+        return stack_trees([_init_decoder_one(k, cfg) for k in split(key, cfg.n_objects)])
+    k1, k2 = split(key, 2)
     p = _init_decoder_one(k1, cfg)
-    p["obj_embed"] = 0.1 * jax.random.normal(k2, (cfg.n_objects, cfg.stage_widths[-1]), jnp.float32)
+    p["obj_embed"] = normal(k2, (cfg.n_objects, cfg.stage_widths[-1]), 0.1)
     return p
 
 

@@ -20,6 +20,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 
 CONV_IMPLS = ("auto", "im2col", "lax")
@@ -205,25 +206,53 @@ def upsample2x_bilinear(x: jax.Array) -> jax.Array:
 # ----------------------------------------------------------------------------- initialisers
 
 
-def he_normal(key: jax.Array, shape: tuple[int, ...], fan_in: int, dtype=jnp.float32) -> jax.Array:
+# Initialisation draws from a numpy Generator seeded by the JAX key: building a model's
+# hundreds of parameter arrays that way takes milliseconds, where dispatching (or compiling)
+# as many jax.random calls takes seconds to tens of seconds on a CPU. Same key -> same
+# Generator stream -> bit-identical params.
+
+
+def make_rng(key: jax.Array) -> np.random.Generator:
+    """numpy Generator seeded from a JAX PRNG key (typed ``jax.random.key`` or raw uint32)."""
+    if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+        key = jax.random.key_data(key)
+    words = [int(v) for v in np.asarray(key, dtype=np.uint32).ravel()]
+    return np.random.default_rng(words)
+
+
+def split(rng: np.random.Generator, n: int) -> list[np.random.Generator]:
+    """``n`` independent child generators (``Generator.spawn``)."""
+    return rng.spawn(n)
+
+
+def normal(rng: np.random.Generator, shape: tuple[int, ...], std: float) -> np.ndarray:
+    """float32 normal draws with standard deviation ``std``."""
+    return (rng.standard_normal(shape, dtype=np.float32) * np.float32(std)).astype(np.float32)
+
+
+def stack_trees(trees: list) -> dict:
+    """Stack a list of identical param trees on a new leading axis (per-object params)."""
+    return jax.tree.map(lambda *xs: np.stack(xs), *trees)
+
+
+def he_normal(rng: np.random.Generator, shape: tuple[int, ...], fan_in: int) -> np.ndarray:
     """He (Kaiming) normal initialisation for ReLU layers: std = sqrt(2 / fan_in)."""
-    return jax.random.normal(key, shape, dtype) * math.sqrt(2.0 / fan_in)
+    return normal(rng, shape, math.sqrt(2.0 / fan_in))
 
 
-def init_conv(key: jax.Array, k: int, cin: int, cout: int, bias: bool = False) -> dict:
+def init_conv(key: np.random.Generator, k: int, cin: int, cout: int, bias: bool = False) -> dict:
     """Params of a k x k conv: {'w': (k,k,cin,cout)} plus {'b': (cout,)} when ``bias``."""
     p = {"w": he_normal(key, (k, k, cin, cout), k * k * cin)}
     if bias:
-        p["b"] = jnp.zeros((cout,), jnp.float32)
+        p["b"] = np.zeros((cout,), np.float32)
     return p
 
 
-def init_dense(key: jax.Array, cin: int, cout: int, scale: float = 2.0) -> dict:
+def init_dense(key: np.random.Generator, cin: int, cout: int, scale: float = 2.0) -> dict:
     """Params of a dense layer: {'w': (cin,cout) normal std sqrt(scale/cin), 'b': zeros}."""
-    w = jax.random.normal(key, (cin, cout), jnp.float32) * math.sqrt(scale / cin)
-    return {"w": w, "b": jnp.zeros((cout,), jnp.float32)}
+    return {"w": normal(key, (cin, cout), math.sqrt(scale / cin)), "b": np.zeros((cout,), np.float32)}
 
 
 def init_gn(c: int) -> dict:
     """GroupNorm params: scale ones, bias zeros."""
-    return {"scale": jnp.ones((c,), jnp.float32), "bias": jnp.zeros((c,), jnp.float32)}
+    return {"scale": np.ones((c,), np.float32), "bias": np.zeros((c,), np.float32)}

@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 
 from ._config import ModelConfig
+from ._layers import make_rng, split
 from ._encoder import backbone, decoder, init_backbone, init_decoder
 from ._pose_decoder import init_pose_decoder, pose_decoder
 from ._rotation import _l2n, init_rotation_head
@@ -18,17 +19,20 @@ RGB_STD = (0.229, 0.224, 0.225)
 def init(key: jax.Array, cfg: ModelConfig) -> dict:
     """Fresh parameters: {'backbone', 'decoder', 'pose_decoder', 'rot_head'} (plain dicts/lists).
 
-    Deterministic: the same key and config give bit-identical params.
+    Deterministic: the same key and config give bit-identical params (drawn with a numpy
+    Generator seeded from the key, see _layers.make_rng).(drawn with a numpy
+    Generator seeded from the key, see _layers.make_rng).
     """
     if not isinstance(cfg, ModelConfig):
         raise ValueError(f"cfg must be a ModelConfig, got {type(cfg).__name__}")
-    k1, k2, k3, k4 = jax.random.split(key, 4)
-    return {
+    k1, k2, k3, k4 = split(make_rng(key), 4)
+    params = {
         "backbone": init_backbone(k1, cfg),
         "decoder": init_decoder(k2, cfg),
         "pose_decoder": init_pose_decoder(k3, cfg),
         "rot_head": init_rotation_head(k4, cfg),
     }
+    return jax.tree.map(jnp.asarray, params)
 
 
 def normalize_rgb(rgb: jax.Array) -> jax.Array:

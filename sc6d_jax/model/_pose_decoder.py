@@ -13,10 +13,11 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._config import ModelConfig
 from ._encoder import conv_gn_relu, init_conv_gn
-from ._layers import conv_output_size, dense, group_norm, init_dense, init_gn, num_groups
+from ._layers import conv_output_size, dense, group_norm, init_dense, init_gn, num_groups, split
 
 DILATIONS = (2, 3, 4, 5, 6, 7)
 
@@ -28,9 +29,9 @@ def _flat_size(cfg: ModelConfig) -> int:
     return s * s * cfg.pose_width
 
 
-def init_pose_decoder(key: jax.Array, cfg: ModelConfig) -> dict:
+def init_pose_decoder(key: np.random.Generator, cfg: ModelConfig) -> dict:
     pw, hh = cfg.pose_width, cfg.head_hidden
-    k = jax.random.split(key, 2 + len(DILATIONS) + 3)
+    k = split(key, 2 + len(DILATIONS) + 3)
     params: dict = {
         "down1": init_conv_gn(k[0], 3, cfg.feat_dim + 1, pw),
         "down2": init_conv_gn(k[1], 3, pw, pw),
@@ -38,7 +39,7 @@ def init_pose_decoder(key: jax.Array, cfg: ModelConfig) -> dict:
     }
     flat = _flat_size(cfg)
     for name, out_dim, hk in zip(("rot", "xy", "z"), (cfg.emb_dim, 2, cfg.n_z_bins), k[-3:]):
-        k1, k2, k3 = jax.random.split(hk, 3)
+        k1, k2, k3 = split(hk, 3)
         params[name] = {
             "conv": init_conv_gn(k1, 3, 8 * pw, pw),
             "fc": init_dense(k2, flat, hh),

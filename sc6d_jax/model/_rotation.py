@@ -17,9 +17,10 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._config import ModelConfig
-from ._layers import dense, init_dense
+from ._layers import dense, init_dense, split, stack_trees
 
 
 def _l2n(x: jax.Array, eps: float = 1e-8) -> jax.Array:
@@ -37,12 +38,12 @@ def rotation_features(R: jax.Array, n_freqs: int = 0) -> jax.Array:
     return jnp.concatenate([x, enc], axis=-1)
 
 
-def _init_stacked_dense(key: jax.Array, n: int, cin: int, cout: int, scale: float = 2.0) -> dict:
-    return jax.vmap(lambda k: init_dense(k, cin, cout, scale))(jax.random.split(key, n))
+def _init_stacked_dense(key: np.random.Generator, n: int, cin: int, cout: int, scale: float = 2.0) -> dict:
+    return stack_trees([init_dense(k, cin, cout, scale) for k in split(key, n)])
 
 
-def init_rotation_head(key: jax.Array, cfg: ModelConfig) -> dict:
-    k1, k2, k3 = jax.random.split(key, 3)
+def init_rotation_head(key: np.random.Generator, cfg: ModelConfig) -> dict:
+    k1, k2, k3 = split(key, 3)
     if cfg.rot_head == "so3":
         h = cfg.so3_hidden
         return {
@@ -52,7 +53,7 @@ def init_rotation_head(key: jax.Array, cfg: ModelConfig) -> dict:
         }
     h = cfg.ipdf_hidden
     d_rot = 9 * (1 + 2 * cfg.ipdf_pe_freqs)
-    k4, k5 = jax.random.split(k3)
+    k4, k5 = split(k3, 2)
     rot_in = _init_stacked_dense(k1, cfg.n_objects, d_rot, h)
     img_in = _init_stacked_dense(k2, cfg.n_objects, cfg.emb_dim, h)
     return {
