@@ -344,3 +344,16 @@ def test_load_resnet_weights_errors(tmp_path):
     wide = dataclasses.replace(cfg18, width=16)
     with pytest.raises(ValueError, match="shape"):
         load_resnet_weights(init(jax.random.key(0), wide), tmp_path / "r18.npz")
+
+
+def test_conv_impls_give_the_same_network_outputs():
+    """lax, im2col and auto are interchangeable for a whole forward pass (multi-object decoders)."""
+    rgb, pe, obj = _inputs(TINY, 3, seed=5)
+    outs = []
+    for impl in ("lax", "im2col", "auto"):
+        cfg = dataclasses.replace(TINY, conv_impl=impl)
+        params = init(jax.random.key(3), cfg)
+        outs.append(jax.jit(apply, static_argnums=1)(params, cfg, rgb, pe, obj))
+    for o in outs[1:]:
+        for k in ("rot_emb", "delta_xy", "z_logits", "mask_logit"):
+            np.testing.assert_allclose(o[k], outs[0][k], rtol=2e-3, atol=2e-4)

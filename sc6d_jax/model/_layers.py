@@ -32,20 +32,28 @@ def conv_output_size(size: int, kernel: int, stride: int, dilation: int) -> int:
     return (size + 2 * pad - dilation * (kernel - 1) - 1) // stride + 1
 
 
-def choose_conv_impl(h: int, w: int, kernel: int, stride: int, dilation: int, cin: int) -> str:
+def choose_conv_impl(
+    h: int, w: int, kernel: int, stride: int, dilation: int, cin: int, per_sample: bool = False
+) -> str:
     """The implementation ``conv_impl="auto"`` uses for one layer (decided at trace time).
 
-    Measured on the project's 2-core CPU (forward + backward, batch 32, the layer shapes of
-    64x64 crops): im2col won or tied on every layer, by 1.5-40x on maps of 16x16 and below.
-    ``lax`` is kept for large maps with many input channels (patch matrices of
-    ``kernel**2 * cin`` columns would otherwise dominate memory), i.e. maps above 64x64.
+    Measured on the project's 2-core CPU, forward + backward, batch 32, the layer shapes of a
+    64x64 crop (see the model report): im2col wins on stride-2 3x3 convs (1.2-1.8x) and on
+    small maps (up to 12x for a 4x4x512 input); ``lax.conv`` wins on stride-1 maps of 16x16
+    and larger (1.5-3x: the stacked patch matrix costs more memory traffic than it saves) and
+    on the 7x7 stem (2x). Per-sample kernels (per-object decoders) always use im2col: a
+    batched matrix product instead of XLA's grouped convolution.
     """
-    del stride, dilation
-    if kernel == 1:
+    del cin, dilation
+    if kernel == 1 or per_sample:
         return "im2col"
-    if h * w > 64 * 64 and cin * kernel * kernel > 1024:
-        return "lax"
-    return "im2col"
+    ho = conv_output_size(h, kernel, stride, 1)
+    wo = conv_output_size(w, kernel, stride, 1)
+    if ho * wo <= 16:
+        return "im2col"
+    if kernel <= 3 and (stride > 1 or ho * wo <= 64):
+        return "im2col"
+    return "lax"
 
 
 def _pad_hw(x: jax.Array, pad: int) -> jax.Array:
@@ -107,7 +115,7 @@ def conv2d(
     if x.shape[-1] != cin:
         raise ValueError(f"conv2d: input has {x.shape[-1]} channels, kernel expects {cin}")
     if impl == "auto":
-        impl = choose_conv_impl(x.shape[1], x.shape[2], kh, stride, dilation, cin)
+        impl = choose_conv_impl(x.shape[1], x.shape[2], kh, stride, dilation, cin, per_sample)
     if impl == "im2col":
         patches = im2col(x, kh, stride, dilation)
         if per_sample:
