@@ -253,6 +253,6 @@ def load_checkpoint(run_dir: str | os.PathLike, step: int | None = None) -> tupl
         ckpt = found[step]
     meta = read_meta(ckpt)
     cfg = TrainConfig.from_dict(meta["config"])
-    template = jax.eval_shape(lambda k: init(k, cfg.model), jax.random.PRNGKey(0))
+    template = jax.eval_shape(lambda p: p, init(jax.random.PRNGKey(0), cfg.model))  # eager: init may use numpy
     params, _, _, _ = read_checkpoint(ckpt, template, None)
     return params, cfg

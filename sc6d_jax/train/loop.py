@@ -353,16 +353,17 @@ def train(
         # -- state ------------------------------------------------------------------------
         tx, sched = make_optimizer(cfg)
         init_key, base_key = jax.random.split(jax.random.PRNGKey(cfg.seed))
-        init_fn = jax.jit(model_fns.init, static_argnums=1)
+        # init is called eagerly (the model may draw its parameters with numpy, which cannot be
+        # traced); on resume its output is only the template of the checkpoint's structure.
+        params = model_fns.init(init_key, cfg.model)
         if latest is not None:
-            p_t = jax.eval_shape(init_fn, init_key, cfg.model)
+            p_t = jax.eval_shape(lambda p: p, params)
             o_t = jax.eval_shape(tx.init, p_t)
             params, opt_state, key_data, _ = read_checkpoint(latest, p_t, o_t)
             base_key = np.asarray(key_data)
             if verbose and pidx == 0:
                 print(f"sc6d train: resuming {run_dir} from step {start} ({latest.name})", flush=True)
         else:
-            params = init_fn(init_key, cfg.model)
             if init_weights is not None:
                 params = model_fns.load_weights(params, cfg.model, init_weights)
             params = _host_tree(params)
