@@ -321,6 +321,8 @@ def test_load_resnet_weights(tmp_path):
     np.testing.assert_array_equal(bb["layer3"][0]["down"]["conv"]["w"], d["layer3.0.downsample.0.weight"].transpose(2, 3, 1, 0))
     # GroupNorm params, the decoders and the input params are untouched
     np.testing.assert_array_equal(bb["layer1"][0]["conv1"]["gn"]["scale"], params["backbone"]["layer1"][0]["conv1"]["gn"]["scale"])
+    np.testing.assert_array_equal(bb["layer2"][1]["conv2"]["gn"]["scale"], 1.0)  # residual branches on
+    np.testing.assert_array_equal(params["backbone"]["layer2"][1]["conv2"]["gn"]["scale"], 0.0)  # input untouched
     assert new["decoder"] is params["decoder"]
     assert not np.array_equal(np.asarray(params["backbone"]["layer2"][1]["conv2"]["conv"]["w"]), bb["layer2"][1]["conv2"]["conv"]["w"])
     out = jax.jit(apply, static_argnums=1)(new, cfg, *_inputs(cfg, 2))

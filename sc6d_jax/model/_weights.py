@@ -8,7 +8,8 @@ Mapping (torchvision -> params['backbone']):
   layer{s}.{i}.downsample.0.weight -> layer{s}[i].down.conv.w
 BatchNorm entries (bn*, downsample.1.*) and the classifier fc.* are ignored: the model uses
 GroupNorm (statistics per sample, not per data set), so only the convolutions carry over and
-the GroupNorm scale/bias keep their init. The U-Net decoder, pose decoder and rotation head
+the GroupNorm scale/bias keep their init, except the scale after each block's second conv,
+which is set from 0 (fresh init: residual branch off) to 1. The U-Net decoder, pose decoder and rotation head
 are always trained from scratch.
 """
 
@@ -91,6 +92,11 @@ def load_resnet_weights(params: dict, path: str | Path, strict: bool = True) -> 
         elif w.shape != cur.shape:
             raise ValueError(f"{name}: file shape (HWIO) {w.shape} != model shape {cur.shape}")
         node[leaf] = jnp.asarray(w, dtype=cur.dtype)
+    # Fresh blocks start with a zero GroupNorm scale on their last conv (residual branch off);
+    # with pretrained convolutions the branches are switched on (scale 1) instead.
+    for s in range(1, 5):
+        for blk in bb.get(f"layer{s}", []):
+            blk["conv2"]["gn"]["scale"] = jnp.ones_like(blk["conv2"]["gn"]["scale"])
     out = dict(params)
     out["backbone"] = bb
     return out
