@@ -1,0 +1,290 @@
+"""The training crop stream: batches rendered on the fly by MuJoCo in worker processes.
+
+Batch ``b`` is a pure function of ``(seed, b)``: each sample draws from
+``numpy.random.default_rng([seed, b, j])``, whatever the number of workers, so a resumed run
+sees the same data as an uninterrupted one. Each worker process holds one renderer (one GL
+context) at crop resolution and renders whole batches; the parent keeps ``2 x workers``
+batches in flight so the training loop does not wait.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import multiprocessing as mp
+import os
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from sc6d_jax.data._augment import colour_augment, random_background
+from sc6d_jax.data._scene import project_box, sample_pose
+
+#: Resample a crop whose visible mask is below either bound (authors' code).
+MIN_VISIBLE_PX = 50
+MIN_VISIBLE_FRACTION = 0.05
+#: Procedural backgrounds pre-drawn per worker.
+BACKGROUND_BANK = 256
+
+
+@dataclass(frozen=True)
+class StreamConfig:
+    """Settings of :class:`CropStream`.
+
+    Attributes:
+        models_dir: BOP models folder (PLY in mm + models_info.json).
+        crop_size: S, the crop side in pixels.
+        batch_size: crops per batch.
+        seed: the stream's seed; batch b depends on (seed, b) only.
+        workers: worker processes (0 = render in this process).
+        obj_ids: objects to sample (None = every model in the folder); the index of an id in
+            this list is the sample's ``obj_idx``.
+        augment: colour augmentation (p 0.8) and random in-plane 90-degree rotations.
+        occlusion: probability that other objects / primitives occlude the target.
+        pad: crop padding factor (s_B = pad * max(w, h)).
+    """
+
+    models_dir: str
+    crop_size: int = 64
+    batch_size: int = 32
+    seed: int = 0
+    workers: int = 2
+    obj_ids: tuple[int, ...] | None = None
+    augment: bool = True
+    occlusion: float = 0.5
+    pad: float = 1.5
+    distance: tuple[float, float] = (2.5, 9.0)
+
+    def __post_init__(self) -> None:
+        if self.crop_size < 8 or self.crop_size % 4:
+            raise ValueError(f"crop_size must be a multiple of 4 and >= 8, got {self.crop_size}")
+        if self.batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
+        if self.workers < 0:
+            raise ValueError(f"workers must be >= 0, got {self.workers}")
+
+
+def resolve_obj_ids(cfg: StreamConfig) -> list[int]:
+    from sc6d_jax.bop import load_models_info
+
+    models = Path(cfg.models_dir)
+    if not models.is_dir():
+        raise FileNotFoundError(f"{models}: models folder not found")
+    plys = sorted(models.glob("obj_*.ply"))
+    if not plys:
+        raise ValueError(f"{models}: no models (obj_XXXXXX.ply) in the folder")
+    if not (models / "models_info.json").is_file():
+        raise FileNotFoundError(f"{models / 'models_info.json'}: required BOP file missing")
+    available = sorted(load_models_info(models))
+    if cfg.obj_ids is None:
+        return available
+    missing = [i for i in cfg.obj_ids if i not in available]
+    if missing:
+        raise ValueError(f"objects {missing} are not in {models} (available: {available})")
+    return list(cfg.obj_ids)
+
+
+class _Worker:
+    """One renderer and the models it needs; renders whole batches."""
+
+    def __init__(self, cfg: StreamConfig) -> None:
+        from sc6d_jax.bop import load_models_info, model_path
+        from sc6d_jax.render import Renderer, load_mesh
+
+        self.cfg = cfg
+        self.obj_ids = resolve_obj_ids(cfg)
+        infos = load_models_info(cfg.models_dir)
+        all_ids = sorted(infos)
+        meshes = {i: load_mesh(model_path(cfg.models_dir, i)) for i in all_ids}
+        self.vertices = {i: np.asarray(m.vertices, np.float64) for i, m in meshes.items()}
+        self.diameters = {i: infos[i].diameter for i in all_ids}
+        self.all_ids = all_ids
+        S = cfg.crop_size
+        self.renderer = Renderer(meshes, S, S, max_instances=2, n_primitives=2, n_lights=2)
+        # A bank of procedural backgrounds (a function of the seed), varied per sample by
+        # flips, a roll and a colour shift: 4x cheaper than drawing a new one per crop.
+        bank_rng = np.random.default_rng([cfg.seed, 2**31 - 2])
+        self.backgrounds = np.stack([random_background(bank_rng, S) for _ in range(BACKGROUND_BANK)])
+
+    def background(self, rng: np.random.Generator) -> np.ndarray:
+        bg = self.backgrounds[rng.integers(len(self.backgrounds))]
+        if rng.random() < 0.5:
+            bg = bg[:, ::-1]
+        if rng.random() < 0.5:
+            bg = bg[::-1]
+        bg = np.roll(bg, tuple(rng.integers(0, bg.shape[0], 2)), axis=(0, 1))
+        shift = rng.integers(-30, 31, 3)
+        return np.clip(bg.astype(np.int16) + shift, 0, 255).astype(np.uint8)
+
+    def sample(self, rng: np.random.Generator) -> dict[str, np.ndarray]:
+        from sc6d_jax import geometry as G
+        from sc6d_jax.render import Light, Primitive
+        from scipy.spatial.transform import Rotation
+
+        cfg, S = self.cfg, self.cfg.crop_size
+        for _attempt in range(50):
+            p = sample_pose(rng, self.obj_ids, self.vertices, self.diameters, cfg.distance)
+            center = np.array([p.box[0] + p.box[2] / 2, p.box[1] + p.box[3] / 2])
+            side = cfg.pad * max(p.box[2], p.box[3])
+            T = np.asarray(G.crop_transform(center, side, S), np.float64)
+            K_B = T @ p.K
+            objects = [(p.obj_id, p.R, p.t)]
+            prims = []
+            if rng.random() < cfg.occlusion:  # occluders between the camera and the target
+                for _ in range(rng.integers(1, 3)):
+                    depth = p.t[2] * rng.uniform(0.55, 0.9)
+                    off = rng.uniform(-0.45, 0.45, 2) * side / p.K[0, 0] * depth
+                    c = p.t * depth / p.t[2] + np.array([off[0], off[1], 0.0])
+                    if rng.random() < 0.5:
+                        oid = int(self.all_ids[rng.integers(len(self.all_ids))])
+                        if sum(o[0] == oid for o in objects) < 2:
+                            objects.append((oid, Rotation.random(random_state=rng).as_matrix(), c))
+                    else:
+                        size = rng.uniform(0.08, 0.3, 3) * self.diameters[p.obj_id]
+                        prims.append(
+                            Primitive(str(rng.choice(["box", "sphere", "cylinder", "ellipsoid"])), size,
+                                      rng.uniform(0, 1, 3), Rotation.random(random_state=rng).as_matrix(), c)
+                        )
+            lights = [
+                Light(direction=rng.normal(size=3) + np.array([0, 0, 1.5]), diffuse=rng.uniform(0.2, 0.7),
+                      specular=rng.uniform(0.0, 0.4))
+                for _ in range(rng.integers(1, 3))
+            ]
+            self.renderer.set_lights(lights, headlight=(rng.uniform(0.1, 0.4), rng.uniform(0.1, 0.5)))
+            bg = self.background(rng)
+            out = self.renderer.render(objects, K_B, primitives=prims, background=bg, depth=False)
+            mask = out.mask_visib[0]
+            n_vis = int(mask.sum())
+            if n_vis < MIN_VISIBLE_PX or n_vis < MIN_VISIBLE_FRACTION * S * S:
+                continue
+            rgb = out.rgb
+            delta_xy, delta_z = G.encode_translation(p.t, p.K, center, side, S)
+            delta_xy = np.asarray(delta_xy, np.float64)
+            R_allo = np.asarray(G.egocentric_to_allocentric(p.R, p.t), np.float64)
+            pe = np.asarray(G.pe_map(p.K, T, S), np.float32)
+            if cfg.augment:
+                rgb = colour_augment(rng, rgb)
+                k = int(rng.integers(4))
+                if k:  # turn the crop by k*90 deg clockwise == Rz(+90k) about the optical axis
+                    rgb = np.ascontiguousarray(np.rot90(rgb, -k))
+                    mask = np.ascontiguousarray(np.rot90(mask, -k))
+                    Rz = np.asarray(G.rot_z(np.float64(k * np.pi / 2)), np.float64)
+                    R_allo = Rz @ R_allo
+                    delta_xy = Rz[:2, :2] @ delta_xy
+            return dict(
+                rgb=rgb, pe=pe, mask_visib=mask.astype(np.uint8), R_allo=R_allo.astype(np.float32),
+                R=p.R.astype(np.float32), t=p.t.astype(np.float32), K=p.K.astype(np.float32),
+                K_B=K_B.astype(np.float32), delta_xy=delta_xy.astype(np.float32),
+                delta_z=np.float32(delta_z), obj_idx=np.int32(self.obj_ids.index(p.obj_id)),
+                obj_id=np.int32(p.obj_id), center=center.astype(np.float32), side=np.float32(side),
+            )
+        raise RuntimeError("could not sample a visible crop in 50 attempts (objects too small for the crop?)")
+
+    def batch(self, b: int) -> dict[str, np.ndarray]:
+        items = [self.sample(np.random.default_rng([self.cfg.seed, b, j])) for j in range(self.cfg.batch_size)]
+        return {k: np.stack([it[k] for it in items]) for k in items[0]}
+
+
+_WORKER: _Worker | None = None
+
+
+def _init_worker(cfg: StreamConfig) -> None:
+    global _WORKER
+    os.environ.setdefault("LP_NUM_THREADS", "1")  # one Mesa rasteriser thread per process
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    _WORKER = _Worker(cfg)
+
+
+def _render_batch(b: int) -> dict[str, np.ndarray]:
+    assert _WORKER is not None
+    return _WORKER.batch(b)
+
+
+class CropStream:
+    """Iterator over training batches (dicts of numpy arrays); see the module docstring.
+
+    Keys: rgb uint8 (B,S,S,3), pe float32 (B,S,S,2), mask_visib uint8 (B,S,S), R_allo, R (B,3,3),
+    t (B,3) mm, K and K_B (B,3,3), delta_xy (B,2), delta_z (B,), obj_idx / obj_id int32 (B,),
+    center (B,2) and side (B,) of the crop box in the image.
+    """
+
+    def __init__(self, cfg: StreamConfig, start_batch: int = 0) -> None:
+        self.cfg = cfg
+        self.obj_ids = resolve_obj_ids(cfg)
+        self._next = int(start_batch)
+        self._pending: deque = deque()
+        self._pool: cf.ProcessPoolExecutor | None = None
+        self._local: _Worker | None = None
+        if cfg.workers == 0:
+            self._local = _Worker(cfg)
+        else:
+            ctx = mp.get_context("spawn")
+            self._pool = cf.ProcessPoolExecutor(cfg.workers, mp_context=ctx, initializer=_init_worker, initargs=(cfg,))
+
+    def batch(self, b: int) -> dict[str, np.ndarray]:
+        """Batch ``b`` computed now (in this process or one worker), independent of the iterator."""
+        if self._local is not None:
+            return self._local.batch(b)
+        assert self._pool is not None
+        return self._pool.submit(_render_batch, b).result()
+
+    def __iter__(self) -> Iterator[dict[str, np.ndarray]]:
+        return self
+
+    def __next__(self) -> dict[str, np.ndarray]:
+        if self._local is not None:
+            out = self._local.batch(self._next)
+            self._next += 1
+            return out
+        assert self._pool is not None
+        while len(self._pending) < 2 * self.cfg.workers:
+            self._pending.append(self._pool.submit(_render_batch, self._next + len(self._pending)))
+        out = self._pending.popleft().result()
+        self._next += 1
+        return out
+
+    def close(self) -> None:
+        if self._pool is not None:
+            for f in self._pending:
+                f.cancel()
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+        if self._local is not None:
+            self._local.renderer.close()
+            self._local = None
+
+    def __enter__(self) -> "CropStream":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self) -> None:  # pragma: no cover
+        try:
+            self.close()
+        except Exception:
+            pass
+
+
+def delta_z_range(cfg: StreamConfig, n: int = 4000, margin: float = 0.1) -> tuple[float, float]:
+    """(d_lo, d_hi) of delta_z = t_z * s_B / S over the training pose distribution, widened by
+    ``margin`` on each side. Poses only (no rendering), deterministic in ``cfg.seed``."""
+    from sc6d_jax.bop import load_models_info, model_path
+    from sc6d_jax.render import load_mesh
+
+    obj_ids = resolve_obj_ids(cfg)
+    infos = load_models_info(cfg.models_dir)
+    verts = {i: np.asarray(load_mesh(model_path(cfg.models_dir, i)).vertices) for i in obj_ids}
+    diam = {i: infos[i].diameter for i in obj_ids}
+    rng = np.random.default_rng([cfg.seed, 2**31 - 1])
+    dz = []
+    for _ in range(n):
+        p = sample_pose(rng, obj_ids, verts, diam, cfg.distance)
+        side = cfg.pad * max(p.box[2], p.box[3])
+        dz.append(p.t[2] * side / cfg.crop_size)
+    lo, hi = float(np.min(dz)), float(np.max(dz))
+    span = hi - lo
+    return max(lo - margin * span, 1e-3), hi + margin * span
