@@ -19,7 +19,8 @@ Presets (:func:`preset`):
   slim decoder, Q = 5000 negatives shared by the batch, K = 1000; 10,000 steps, sized for
   about an hour on two CPU cores.
 - ``tiny``: 48x48 crops, 4 residual blocks of width 16 and a slim decoder, batch 16,
-  Q = 1000, 64 depth bins: for tests and smoke runs.
+  Q = 1000, 64 depth bins, 400 steps (about 30 s on two cores after a ~15 s compile): for
+  tests and smoke runs.
 """
 
 from __future__ import annotations
@@ -290,16 +291,18 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
             log_every=20,
         )
     elif name == "tiny":
+        # Measured on renders of one asymmetric mesh: 400 steps bring the median rotation error
+        # from ~126 to ~19 degrees; with pose_width 16 / hidden 64 it stayed above 100 degrees.
         cfg = TrainConfig(
             model=ModelConfig(
                 n_objects=1, crop_size=48, backbone="tiny", width=16, decoder_width=16, feat_dim=32,
-                pose_width=16, head_hidden=64, so3_hidden=64, n_z_bins=64, conv_impl="lax",
+                pose_width=32, head_hidden=128, so3_hidden=128, n_z_bins=64, conv_impl="lax",
             ),
             loss=LossConfig(n_negatives=1000, rebase_negatives=False),
             stream=StreamSettings(batch_size=16),
             optim=OptimConfig(lr=2e-3, lr_end=1e-5, weight_decay=1e-4, warmup_steps=0),
-            steps=800,
-            checkpoint_every=200,
+            steps=400,
+            checkpoint_every=100,
             log_every=20,
         )
     else:
