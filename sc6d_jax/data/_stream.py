@@ -44,6 +44,9 @@ class StreamConfig:
         augment: colour augmentation (p 0.8) and random in-plane 90-degree rotations.
         occlusion: probability that other objects / primitives occlude the target.
         pad: crop padding factor (s_B = pad * max(w, h)).
+        distance: camera distance range in object diameters.
+        background: "textured" (procedural patterns) or "plain" (one random colour per crop):
+            plain backgrounds and no occlusion make a much easier task for tiny smoke runs.
     """
 
     models_dir: str
@@ -56,8 +59,13 @@ class StreamConfig:
     occlusion: float = 0.5
     pad: float = 1.5
     distance: tuple[float, float] = (2.5, 9.0)
+    background: str = "textured"
 
     def __post_init__(self) -> None:
+        if self.background not in ("textured", "plain"):
+            raise ValueError(f"background must be 'textured' or 'plain', got {self.background!r}")
+        if not 0.0 <= self.occlusion <= 1.0:
+            raise ValueError(f"occlusion must be a probability in [0, 1], got {self.occlusion}")
         if self.crop_size < 8 or self.crop_size % 4:
             raise ValueError(f"crop_size must be a multiple of 4 and >= 8, got {self.crop_size}")
         if self.batch_size < 1:
@@ -109,6 +117,9 @@ class _Worker:
         self.backgrounds = np.stack([random_background(bank_rng, S) for _ in range(BACKGROUND_BANK)])
 
     def background(self, rng: np.random.Generator) -> np.ndarray:
+        if self.cfg.background == "plain":
+            S = self.cfg.crop_size
+            return np.broadcast_to(rng.integers(0, 256, 3).astype(np.uint8), (S, S, 3)).copy()
         bg = self.backgrounds[rng.integers(len(self.backgrounds))]
         if rng.random() < 0.5:
             bg = bg[:, ::-1]
