@@ -91,6 +91,7 @@ def main(argv: list[str]) -> int:
             batch_size=args.batch_size if args.batch_size is not None else s.batch_size,
             obj_ids=args.obj_ids if args.obj_ids is not None else s.obj_ids,
             augment=s.augment,
+            occlusion=s.occlusion,
         )
         if args.obj_ids is not None:
             changes["model"] = dataclasses.replace(cfg.model, n_objects=len(args.obj_ids))

@@ -53,11 +53,14 @@ class StreamSettings:
         obj_ids: BOP ids of the objects to train on; ``None`` = every model in the folder
             (resolved to the actual tuple when training starts).
         augment: colour augmentation and random in-plane 90-degree rotations.
+        occlusion: probability that occluders are drawn over the target (``None`` = the
+            stream's default).
     """
 
     batch_size: int = 32
     obj_ids: tuple[int, ...] | None = None
     augment: bool = True
+    occlusion: float | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.batch_size, int) or self.batch_size < 1:
@@ -69,6 +72,8 @@ class StreamSettings:
             if len(set(ids)) != len(ids):
                 raise ValueError(f"stream.obj_ids has duplicates: {self.obj_ids!r}")
             object.__setattr__(self, "obj_ids", ids)
+        if self.occlusion is not None and not 0.0 <= self.occlusion <= 1.0:
+            raise ValueError(f"stream.occlusion must be in [0, 1] or None, got {self.occlusion!r}")
 
 
 @dataclass(frozen=True)

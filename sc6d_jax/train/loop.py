@@ -116,6 +116,7 @@ def _default_data_fns() -> DataFns:
             raise ValueError(f"models folder {models_dir} holds no models ({'/'.join(_MESH_EXTS)} files)")
         if kw.get("workers") is None:
             kw.pop("workers", None)
+        kw["models_dir"] = str(models_dir)
         return data.StreamConfig(**kw)
 
     return DataFns(stream_config, data.CropStream, data.delta_z_range)
@@ -319,6 +320,8 @@ def train(
         models_dir=models_dir, crop_size=cfg.model.crop_size, workers=workers,
         obj_ids=cfg.stream.obj_ids, augment=cfg.stream.augment,
     )
+    if cfg.stream.occlusion is not None:
+        common["occlusion"] = cfg.stream.occlusion
     scfg = data_fns.stream_config(batch_size=local_bs, seed=_process_seed(cfg.seed, pidx, pcount), **common)
     stream = data_fns.stream(scfg, start)
     try:
