@@ -129,73 +129,103 @@ class _Worker:
         shift = rng.integers(-30, 31, 3)
         return np.clip(bg.astype(np.int16) + shift, 0, 255).astype(np.uint8)
 
-    def sample(self, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    def _poses(self, rngs: list[np.random.Generator]):
+        """Poses for a list of samples, with their crop transforms computed in one batched call."""
         from sc6d_jax import geometry as G
-        from sc6d_jax.render import Light, Primitive
+
+        cfg = self.cfg
+        poses = [sample_pose(r, self.obj_ids, self.vertices, self.diameters, cfg.distance) for r in rngs]
+        centers = np.array([[p.box[0] + p.box[2] / 2, p.box[1] + p.box[3] / 2] for p in poses])
+        sides = np.array([cfg.pad * max(p.box[2], p.box[3]) for p in poses])
+        T = np.asarray(G.crop_transform(centers, sides, cfg.crop_size), np.float64)
+        return poses, centers, sides, T
+
+    def _render(self, rng: np.random.Generator, p, side: float, T: np.ndarray):
+        """Render one crop through K_B = T K with occluders, lights and a background.
+
+        Returns (rgb, visible mask) or None when too little of the target is visible."""
         from scipy.spatial.transform import Rotation
 
+        from sc6d_jax.render import Light, Primitive
+
         cfg, S = self.cfg, self.cfg.crop_size
-        for _attempt in range(50):
-            p = sample_pose(rng, self.obj_ids, self.vertices, self.diameters, cfg.distance)
-            center = np.array([p.box[0] + p.box[2] / 2, p.box[1] + p.box[3] / 2])
-            side = cfg.pad * max(p.box[2], p.box[3])
-            T = np.asarray(G.crop_transform(center, side, S), np.float64)
-            K_B = T @ p.K
-            objects = [(p.obj_id, p.R, p.t)]
-            prims = []
-            if rng.random() < cfg.occlusion:  # occluders between the camera and the target
-                for _ in range(rng.integers(1, 3)):
-                    depth = p.t[2] * rng.uniform(0.55, 0.9)
-                    off = rng.uniform(-0.45, 0.45, 2) * side / p.K[0, 0] * depth
-                    c = p.t * depth / p.t[2] + np.array([off[0], off[1], 0.0])
-                    if rng.random() < 0.5:
-                        oid = int(self.all_ids[rng.integers(len(self.all_ids))])
-                        if sum(o[0] == oid for o in objects) < 2:
-                            objects.append((oid, Rotation.random(random_state=rng).as_matrix(), c))
-                    else:
-                        size = rng.uniform(0.08, 0.3, 3) * self.diameters[p.obj_id]
-                        prims.append(
-                            Primitive(str(rng.choice(["box", "sphere", "cylinder", "ellipsoid"])), size,
-                                      rng.uniform(0, 1, 3), Rotation.random(random_state=rng).as_matrix(), c)
-                        )
-            lights = [
-                Light(direction=rng.normal(size=3) + np.array([0, 0, 1.5]), diffuse=rng.uniform(0.2, 0.7),
-                      specular=rng.uniform(0.0, 0.4))
-                for _ in range(rng.integers(1, 3))
-            ]
-            self.renderer.set_lights(lights, headlight=(rng.uniform(0.1, 0.4), rng.uniform(0.1, 0.5)))
-            bg = self.background(rng)
-            out = self.renderer.render(objects, K_B, primitives=prims, background=bg, depth=False)
-            mask = out.mask_visib[0]
-            n_vis = int(mask.sum())
-            if n_vis < MIN_VISIBLE_PX or n_vis < MIN_VISIBLE_FRACTION * S * S:
-                continue
-            rgb = out.rgb
-            delta_xy, delta_z = G.encode_translation(p.t, p.K, center, side, S)
-            delta_xy = np.asarray(delta_xy, np.float64)
-            R_allo = np.asarray(G.egocentric_to_allocentric(p.R, p.t), np.float64)
-            pe = np.asarray(G.pe_map(p.K, T, S), np.float32)
-            if cfg.augment:
-                rgb = colour_augment(rng, rgb)
-                k = int(rng.integers(4))
-                if k:  # turn the crop by k*90 deg clockwise == Rz(+90k) about the optical axis
-                    rgb = np.ascontiguousarray(np.rot90(rgb, -k))
-                    mask = np.ascontiguousarray(np.rot90(mask, -k))
-                    Rz = np.asarray(G.rot_z(np.float64(k * np.pi / 2)), np.float64)
-                    R_allo = Rz @ R_allo
-                    delta_xy = Rz[:2, :2] @ delta_xy
-            return dict(
-                rgb=rgb, pe=pe, mask_visib=mask.astype(np.uint8), R_allo=R_allo.astype(np.float32),
-                R=p.R.astype(np.float32), t=p.t.astype(np.float32), K=p.K.astype(np.float32),
-                K_B=K_B.astype(np.float32), delta_xy=delta_xy.astype(np.float32),
-                delta_z=np.float32(delta_z), obj_idx=np.int32(self.obj_ids.index(p.obj_id)),
-                obj_id=np.int32(p.obj_id), center=center.astype(np.float32), side=np.float32(side),
-            )
-        raise RuntimeError("could not sample a visible crop in 50 attempts (objects too small for the crop?)")
+        K_B = T @ p.K
+        objects = [(p.obj_id, p.R, p.t)]
+        prims = []
+        if rng.random() < cfg.occlusion:  # occluders between the camera and the target
+            for _ in range(rng.integers(1, 3)):
+                depth = p.t[2] * rng.uniform(0.55, 0.9)
+                off = rng.uniform(-0.45, 0.45, 2) * side / p.K[0, 0] * depth
+                c = p.t * depth / p.t[2] + np.array([off[0], off[1], 0.0])
+                if rng.random() < 0.5:
+                    oid = int(self.all_ids[rng.integers(len(self.all_ids))])
+                    if sum(o[0] == oid for o in objects) < 2:
+                        objects.append((oid, Rotation.random(random_state=rng).as_matrix(), c))
+                else:
+                    size = rng.uniform(0.08, 0.3, 3) * self.diameters[p.obj_id]
+                    prims.append(
+                        Primitive(str(rng.choice(["box", "sphere", "cylinder", "ellipsoid"])), size,
+                                  rng.uniform(0, 1, 3), Rotation.random(random_state=rng).as_matrix(), c)
+                    )
+        lights = [
+            Light(direction=rng.normal(size=3) + np.array([0, 0, 1.5]), diffuse=rng.uniform(0.2, 0.7),
+                  specular=rng.uniform(0.0, 0.4))
+            for _ in range(rng.integers(1, 3))
+        ]
+        self.renderer.set_lights(lights, headlight=(rng.uniform(0.1, 0.4), rng.uniform(0.1, 0.5)))
+        out = self.renderer.render(objects, K_B, primitives=prims, background=self.background(rng), depth=False)
+        mask = out.mask_visib[0]
+        n_vis = int(mask.sum())
+        if n_vis < MIN_VISIBLE_PX or n_vis < MIN_VISIBLE_FRACTION * S * S:
+            return None
+        return out.rgb, mask
 
     def batch(self, b: int) -> dict[str, np.ndarray]:
-        items = [self.sample(np.random.default_rng([self.cfg.seed, b, j])) for j in range(self.cfg.batch_size)]
-        return {k: np.stack([it[k] for it in items]) for k in items[0]}
+        """Batch ``b``: sample j draws from default_rng([seed, b, j]) only. Labels (translation
+        code, allocentric rotation, PE maps) are computed for the whole batch in batched calls."""
+        from sc6d_jax import geometry as G
+
+        cfg, B, S = self.cfg, self.cfg.batch_size, self.cfg.crop_size
+        rngs = [np.random.default_rng([cfg.seed, b, j]) for j in range(B)]
+        poses, centers, sides, T = self._poses(rngs)
+        rgbs, masks = [None] * B, [None] * B
+        for j in range(B):
+            for attempt in range(50):
+                got = self._render(rngs[j], poses[j], sides[j], T[j])
+                if got is not None:
+                    rgbs[j], masks[j] = got
+                    break
+                p2, c2, s2, T2 = self._poses([rngs[j]])  # resample this one (rare)
+                poses[j], centers[j], sides[j], T[j] = p2[0], c2[0], s2[0], T2[0]
+            else:
+                raise RuntimeError("could not sample a visible crop in 50 attempts (objects too small for the crop?)")
+        K = np.stack([p.K for p in poses])
+        R = np.stack([p.R for p in poses])
+        t = np.stack([p.t for p in poses])
+        delta_xy, delta_z = (np.asarray(a, np.float64) for a in G.encode_translation(t, K, centers, sides, S))
+        R_allo = np.asarray(G.egocentric_to_allocentric(R, t), np.float64)
+        pe = np.asarray(G.pe_map(K, T, S), np.float32)
+        rgb, mask = np.stack(rgbs), np.stack(masks)
+        if cfg.augment:
+            for j in range(B):
+                rgb[j] = colour_augment(rngs[j], rgb[j])
+                k = int(rngs[j].integers(4))
+                if k:  # turn the crop by k*90 deg clockwise == Rz(+90k) about the optical axis
+                    rgb[j] = np.rot90(rgb[j], -k)
+                    mask[j] = np.rot90(mask[j], -k)
+                    c, s_ = [(1, 0), (0, 1), (-1, 0), (0, -1)][k]
+                    Rz = np.array([[c, -s_, 0], [s_, c, 0], [0, 0, 1]], np.float64)
+                    R_allo[j] = Rz @ R_allo[j]
+                    delta_xy[j] = Rz[:2, :2] @ delta_xy[j]
+        return dict(
+            rgb=rgb, pe=pe, mask_visib=mask.astype(np.uint8), R_allo=R_allo.astype(np.float32),
+            R=R.astype(np.float32), t=t.astype(np.float32), K=K.astype(np.float32),
+            K_B=(T @ K).astype(np.float32), delta_xy=delta_xy.astype(np.float32),
+            delta_z=delta_z.astype(np.float32),
+            obj_idx=np.array([self.obj_ids.index(p.obj_id) for p in poses], np.int32),
+            obj_id=np.array([p.obj_id for p in poses], np.int32),
+            center=centers.astype(np.float32), side=sides.astype(np.float32),
+        )
 
 
 _WORKER: _Worker | None = None
