@@ -8,7 +8,7 @@ For each crop size and 1 / 2 worker processes it prints:
 - ``stream``: crops/s of the full training stream (sc6d_jax.data.CropStream: scene sampling,
   rendering, backgrounds, augmentation, labels, PE maps).
 Figures are medians over repeats, measured in the same run. pyrender is optional
-(``pip install -e .[bench]``); its columns are skipped with a message when it is missing.
+(``pip install pyrender && pip install -U "pyopengl>=3.1.7"``: pyrender pins an old PyOpenGL that breaks MuJoCo's EGL); its columns are skipped with a message when it is missing.
 """
 
 from __future__ import annotations
