@@ -1,0 +1,32 @@
+"""`sc6d demo` runs end to end on the built-in objects (without a model: objects, render, check)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from sc6d_jax.demo import _ar_groups, main
+
+
+def test_demo_without_model(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["--out", str(out), "--scenes", "1", "--images-per-scene", "2"]) == 0
+    assert (out / "models" / "models_info.json").is_file()
+    assert (out / "dataset" / "test_targets_bop19.json").is_file()
+    assert (out / "check.png").read_bytes()[:4] == b"\x89PNG"
+    assert "6/6 poses pass" in capsys.readouterr().out
+
+
+def test_demo_bad_arguments(tmp_path):
+    with pytest.raises(ValueError, match="either --run"):
+        main(["--out", str(tmp_path / "d"), "--run", str(tmp_path), "--train"])
+    with pytest.raises(FileNotFoundError, match="config.json"):
+        main(["--out", str(tmp_path / "d"), "--run", str(tmp_path)])
+    assert not (tmp_path / "d").exists()
+
+
+def test_ar_groups_weights_by_targets():
+    scores = {"per_object": {"1": {"ar": 1.0, "targets": 3}, "2": {"ar": 0.0, "targets": 1}, "5": {"ar": 0.5, "targets": 1}}}
+    g = _ar_groups(json.loads(json.dumps(scores)), {2, 5})
+    assert g["asymmetric"] == 1.0 and g["symmetric"] == 0.25
