@@ -136,6 +136,25 @@ class BakedMesh:
     rgba: tuple[float, float, float, float]
     texture: np.ndarray | None  # (Ht, Wt, 3) uint8
     texcoords: np.ndarray | None  # (F, 2) float, one per face (texel centre)
+    normals: np.ndarray | None = None  # (V, 3) per-vertex normals (sharp edges split)
+
+
+def _split_sharp_edges(mesh: trimesh.Trimesh, angle_deg: float = 30.0):
+    """Vertices, faces and vertex normals with vertices split along edges sharper than
+    ``angle_deg`` (flat faces look flat, curved surfaces stay smooth). Face order is kept."""
+    try:
+        sm = trimesh.graph.smooth_shade(mesh, angle=np.radians(angle_deg))
+        if len(sm.faces) == len(mesh.faces) and np.allclose(
+            sm.triangles_center, mesh.triangles_center, atol=1e-6
+        ):
+            return (np.asarray(sm.vertices, np.float64), np.asarray(sm.faces, np.int64),
+                    np.asarray(sm.vertex_normals, np.float64))
+    except Exception:  # pragma: no cover - fall back to fully flat shading
+        pass
+    faces = np.asarray(mesh.faces, np.int64)
+    v = np.asarray(mesh.vertices, np.float64)[faces].reshape(-1, 3)
+    n = np.repeat(np.asarray(mesh.face_normals, np.float64), 3, axis=0)
+    return v, np.arange(len(v), dtype=np.int64).reshape(-1, 3), n
 
 
 def bake_mesh(mesh: trimesh.Trimesh) -> BakedMesh:
@@ -146,11 +165,10 @@ def bake_mesh(mesh: trimesh.Trimesh) -> BakedMesh:
     Uniformly coloured meshes use a plain RGBA instead.
     """
     fc = np.asarray(mesh.visual.face_colors, dtype=np.uint8)[:, :3]
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    faces = np.asarray(mesh.faces, dtype=np.int64)
+    vertices, faces, normals = _split_sharp_edges(mesh)
     if len(fc) and np.all(fc == fc[0]):
         rgba = tuple(float(c) / 255.0 for c in fc[0]) + (1.0,)
-        return BakedMesh(vertices, faces, rgba, None, None)  # type: ignore[arg-type]
+        return BakedMesh(vertices, faces, rgba, None, None, normals)  # type: ignore[arg-type]
     n = len(faces)
     w = int(np.ceil(np.sqrt(n)))
     h = int(np.ceil(n / w))
@@ -158,4 +176,4 @@ def bake_mesh(mesh: trimesh.Trimesh) -> BakedMesh:
     tex[:n] = fc
     k = np.arange(n)
     uv = np.stack([(k % w + 0.5) / w, (k // w + 0.5) / h], axis=1)
-    return BakedMesh(vertices, faces, (1.0, 1.0, 1.0, 1.0), tex.reshape(h, w, 3), uv)
+    return BakedMesh(vertices, faces, (1.0, 1.0, 1.0, 1.0), tex.reshape(h, w, 3), uv, normals)

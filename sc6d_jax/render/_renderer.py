@@ -79,6 +79,19 @@ class RenderOutput:
     extra: dict = field(default_factory=dict)
 
 
+def _gl_context_class():
+    """The GL context class for the current ``MUJOCO_GL`` (default egl), chosen at call time so
+    that importing mujoco before this module does not silently select GLFW."""
+    backend = os.environ.get("MUJOCO_GL", "egl").lower().strip() or "egl"
+    if backend == "egl":
+        from mujoco.egl import GLContext
+    elif backend == "osmesa":
+        from mujoco.osmesa import GLContext
+    else:
+        from mujoco.rendering.classic.gl_context import GLContext
+    return GLContext
+
+
 def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
     q = np.empty(4)
     mujoco.mju_mat2Quat(q, np.ascontiguousarray(R, dtype=np.float64).ravel())
@@ -179,6 +192,8 @@ class Renderer:
             m = spec.add_mesh(name=f"mesh{obj_id}")
             m.uservert = baked.vertices.ravel().tolist()
             m.userface = baked.faces.ravel().tolist()
+            if baked.normals is not None:
+                m.usernormal = baked.normals.ravel().tolist()
             mat = spec.add_material(name=f"mat{obj_id}", rgba=list(baked.rgba))
             mat.specular = 0.3
             mat.shininess = 0.3
@@ -229,9 +244,7 @@ class Renderer:
         self.data.mocap_pos[:] = _HIDDEN
         self._cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "cam")
 
-        from mujoco.rendering.classic import gl_context
-
-        self._gl = gl_context.GLContext(self.width, self.height)
+        self._gl = _gl_context_class()(self.width, self.height)
         self._gl.make_current()
         self._con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100.value)
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._con)
@@ -278,6 +291,7 @@ class Renderer:
             amb, dif = float(headlight[0]), float(headlight[1])
             model.vis.headlight.ambient[:] = amb
             model.vis.headlight.diffuse[:] = dif
+            model.vis.headlight.specular[:] = 0.0 if dif == 0 else 0.1
 
     def _place(self, objects, primitives) -> list[int]:
         data = self.data
