@@ -239,6 +239,11 @@ def test_bad_input(scene_renderer, tmp_path):
         r.render([(99, np.eye(3), np.array([0, 0, 300.0]))], K_SMALL)
     with pytest.raises(ValueError, match="rotation"):
         r.render([(1, 2 * np.eye(3), np.array([0, 0, 300.0]))], K_SMALL)
+    # BOP files store R with few digits (LM-O: |R R^T - I| up to 0.01): rendered as the nearest rotation
+    R_loose = np.round(_rot([1, 2, 3], 1.0), 2)
+    assert np.abs(R_loose @ R_loose.T - np.eye(3)).max() > 1e-3
+    out = r.render([(1, R_loose, np.array([0, 0, 300.0]))], K_SMALL)
+    assert out.mask_visib[0].sum() > 0
     with pytest.raises(ValueError, match="focal"):
         r.render([], np.diag([0.0, 1.0, 1.0]))
     with pytest.raises(ValueError, match="max_instances"):
