@@ -16,8 +16,9 @@ Presets (:func:`preset`):
 - ``paper``: the authors' settings for one GPU: 256x256 crops, ResNet34, Q = 5000 negatives,
   K = 1000 depth bins, batch 64, AdamW 5e-4 -> 1e-5 cosine, weight decay 1e-4.
 - ``cpu``: 64x64 crops, batch 32, a one-block-per-stage residual backbone of width 16 with a
-  slim decoder, Q = 5000 negatives shared by the batch, K = 1000; 10,000 steps, sized for
-  about an hour on two CPU cores.
+  slim shared decoder, Q = 5000 negatives shared by the batch, K = 1000; 18,000 steps: about
+  an hour on two CPU cores (measured 5.3 steps/s with the renderer stream, 6.7 with
+  pre-rendered batches, 14 built-in objects; experiments/bench_train.py).
 - ``tiny``: 48x48 crops, 4 residual blocks of width 16 and a slim decoder, batch 16,
   Q = 1000, 64 depth bins, 400 steps (about 30 s on two cores after a ~15 s compile): for
   tests and smoke runs.
@@ -295,7 +296,7 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
             loss=LossConfig(n_negatives=5000, rebase_negatives=False),
             stream=StreamSettings(batch_size=32),
             optim=OptimConfig(lr=5e-4, lr_end=1e-5, weight_decay=1e-4, warmup_steps=200),
-            steps=10_000,
+            steps=18_000,
             checkpoint_every=500,
             log_every=20,
         )
