@@ -36,7 +36,7 @@ import numpy as np
 import optax
 from jax.sharding import NamedSharding, PartitionSpec
 
-from sc6d_jax._io import atomic_write_json, atomic_write_text
+from sc6d_jax._io import atomic_write_text
 from sc6d_jax.train.checkpoint import (
     checkpoint_dirs,
     read_checkpoint,
