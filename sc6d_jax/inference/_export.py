@@ -1,10 +1,15 @@
 """Serialise the jitted predictor with ``jax.export`` and run it without the training code.
 
-The file (``.npz``) holds the serialised StableHLO module (batch dimension symbolic) and its
+The file (``.npz``) holds the serialised StableHLO module and its
 array arguments: the model parameters as a flat list and the packed rotation library. The
 exported function maps a batch of crops (uint8 ``(B,S,S,3)``, K ``(B,3,3)``, crop centre
 ``(B,2)``, side ``(B,)``, object index ``(B,)``) to the pose dict of
 :func:`sc6d_jax.inference.predict_crops`.
+
+The batch dimension is symbolic where the network allows it. Per-object decoders (per-sample
+convolution kernels) lower to convolutions whose group count is the batch size, which StableHLO
+cannot keep symbolic; such models are exported for a fixed batch of ``FIXED_BATCH`` crops and
+the loader pads and chunks any batch to it.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ import numpy as np
 from sc6d_jax._io import atomic_write_bytes
 
 EXPORT_FORMAT = "sc6d-jax-exported-predictor/1"
+FIXED_BATCH = 16
 
 
 def export_predictor(est: Any, path: str | os.PathLike, tta: bool = False, top_k: int = 1) -> Path:
@@ -38,21 +44,28 @@ def export_predictor(est: Any, path: str | os.PathLike, tta: bool = False, top_k
         params = jax.tree_util.tree_unflatten(treedef, leaves)
         return predict_crops(params, blocks, lib_R, rgb, K, center, side, obj_idx, **kw)
 
-    (b,) = export.symbolic_shape("b")
     sds = jax.ShapeDtypeStruct
-    args = (
-        [sds(x.shape, x.dtype) for x in leaves],
-        sds(blocks.shape, blocks.dtype),
-        sds(est._lib_R.shape, est._lib_R.dtype),
-        sds((b, S, S, 3), jnp.uint8),
-        sds((b, 3, 3), jnp.float32),
-        sds((b, 2), jnp.float32),
-        sds((b,), jnp.float32),
-        sds((b,), jnp.int32),
-    )
-    exp = export.export(jax.jit(fn))(*args)
+
+    def args_for(b):
+        return (
+            [sds(x.shape, x.dtype) for x in leaves],
+            sds(blocks.shape, blocks.dtype),
+            sds(est._lib_R.shape, est._lib_R.dtype),
+            sds((b, S, S, 3), jnp.uint8),
+            sds((b, 3, 3), jnp.float32),
+            sds((b, 2), jnp.float32),
+            sds((b,), jnp.float32),
+            sds((b,), jnp.int32),
+        )
+
+    try:
+        exp = export.export(jax.jit(fn))(*args_for(export.symbolic_shape("b")[0]))
+        fixed = None
+    except NotImplementedError:  # per-sample kernels: the batch becomes a conv group count
+        exp = export.export(jax.jit(fn))(*args_for(FIXED_BATCH))
+        fixed = FIXED_BATCH
     meta = {"format": EXPORT_FORMAT, "crop_size": S, "obj_ids": est.obj_ids, "tta": tta, "top_k": top_k,
-            "n_params": len(leaves), "library_key": est.library.key}
+            "n_params": len(leaves), "library_key": est.library.key, "fixed_batch": fixed}
     arrays = {f"p{i:05d}": np.asarray(x) for i, x in enumerate(leaves)}
     arrays.update(blocks=np.asarray(blocks), lib_R=np.asarray(est._lib_R),
                   exported=np.frombuffer(bytes(exp.serialize()), np.uint8), meta=np.asarray(json.dumps(meta)))
@@ -88,11 +101,20 @@ def load_exported(path: str | os.PathLike) -> Callable[..., dict]:
         rgb = np.asarray(rgb)
         if rgb.dtype != np.uint8 or rgb.ndim != 4 or rgb.shape[1:] != (meta["crop_size"],) * 2 + (3,):
             raise ValueError(f"crops must be uint8 (B, {meta['crop_size']}, {meta['crop_size']}, 3), got {rgb.dtype}{rgb.shape}")
-        out = exp.call(
-            leaves, blocks, lib_R, jnp.asarray(rgb), jnp.asarray(K, jnp.float32), jnp.asarray(center, jnp.float32),
-            jnp.asarray(side, jnp.float32), jnp.asarray(obj_idx, jnp.int32),
-        )
-        return {k: np.asarray(v) for k, v in out.items()}
+        ins = [rgb, np.asarray(K, np.float32), np.asarray(center, np.float32), np.asarray(side, np.float32),
+               np.asarray(obj_idx, np.int32)]
+        fixed, n = meta.get("fixed_batch"), len(rgb)
+        if not fixed:
+            out = exp.call(leaves, blocks, lib_R, *(jnp.asarray(a) for a in ins))
+            return {k: np.asarray(v) for k, v in out.items()}
+        chunks = []
+        for i in range(0, max(n, 1), fixed):  # pad the last chunk by repeating its first row
+            part = [a[i:i + fixed] for a in ins]
+            m = len(part[0])
+            part = [np.concatenate([p, np.repeat(p[:1], fixed - m, axis=0)]) if m < fixed else p for p in part]
+            out = exp.call(leaves, blocks, lib_R, *(jnp.asarray(a) for a in part))
+            chunks.append({k: np.asarray(v)[:m] for k, v in out.items()})
+        return {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
 
     run.meta = meta  # type: ignore[attr-defined]
     return run
