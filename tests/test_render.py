@@ -280,3 +280,21 @@ def test_load_mesh_ply_vertex_colours_and_units(tmp_path):
     stl = tmp_path / "m.stl"
     trimesh.creation.box(extents=[10, 20, 30]).export(stl)
     assert np.allclose(load_mesh(stl).extents, [10, 20, 30])
+
+
+def test_single_object_mask_from_depth_equals_segmentation(scene_renderer):
+    """One object in the scene: the mask comes from the depth buffer, identical to the seg pass."""
+    r, _ = scene_renderer
+    bg = np.full((H, W, 3), 7, np.uint8)
+    for k, (oid, R) in enumerate([(2, _rot([1, 1, 0], 0.7)), (1, np.eye(3)), (3, _rot([0, 1, 0], 1.2))]):
+        t = np.array([5.0 * k, -3.0, 450.0])
+        fast = r.render([(oid, R, t)], K_SMALL, background=bg, depth=False, full_masks=True)
+        r._force_segmentation = True
+        try:
+            slow = r.render([(oid, R, t)], K_SMALL, background=bg, depth=False, full_masks=True)
+        finally:
+            r._force_segmentation = False
+        assert fast.mask_visib[0].any()
+        assert np.array_equal(fast.instance, slow.instance)
+        assert np.array_equal(fast.mask_full, slow.mask_full)
+        assert np.array_equal(fast.rgb, slow.rgb)

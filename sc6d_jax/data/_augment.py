@@ -53,7 +53,7 @@ def colour_augment(rng: np.random.Generator, img: np.ndarray, p: float = 0.8) ->
         m = x.mean()
         x = (x - m) * rng.uniform(0.6, 1.4) + m
     if rng.random() < 0.3:  # gaussian noise
-        x += rng.normal(0, rng.uniform(2, 12), x.shape).astype(np.float32)
+        x += rng.standard_normal(x.shape, dtype=np.float32) * np.float32(rng.uniform(2, 12))
     if rng.random() < 0.2:  # coarse dropout of pixels
         x[rng.random(x.shape[:2]) < rng.uniform(0.01, 0.05)] = 0
     if rng.random() < 0.05:  # invert

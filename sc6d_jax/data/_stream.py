@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
+import cv2
 import numpy as np
 
 from sc6d_jax.data._augment import colour_augment, random_background
@@ -127,7 +128,10 @@ class _Worker:
             bg = bg[::-1]
         bg = np.roll(bg, tuple(rng.integers(0, bg.shape[0], 2)), axis=(0, 1))
         shift = rng.integers(-30, 31, 3)
-        return np.clip(bg.astype(np.int16) + shift, 0, 255).astype(np.uint8)
+        # saturating uint8 arithmetic (cv2) instead of an int16 round trip
+        up = np.maximum(shift, 0).astype(np.float64).tolist() + [0.0]
+        down = np.maximum(-shift, 0).astype(np.float64).tolist() + [0.0]
+        return cv2.subtract(cv2.add(np.ascontiguousarray(bg), tuple(up)), tuple(down))
 
     def _poses(self, rngs: list[np.random.Generator]):
         """Poses for a list of samples, with their crop transforms computed in one batched call."""

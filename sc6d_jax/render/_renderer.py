@@ -109,8 +109,10 @@ def _validate_pose(R: np.ndarray, t: np.ndarray, what: str) -> tuple[np.ndarray,
     # deviations and render the nearest rotation.
     if np.abs(R @ R.T - np.eye(3)).max() > 0.02 or np.linalg.det(R) < 0:
         raise ValueError(f"{what}: R is not a rotation matrix")
-    u, _, vt = np.linalg.svd(R)
-    return u @ vt, t
+    if np.abs(R @ R.T - np.eye(3)).max() > 1e-9:
+        u, _, vt = np.linalg.svd(R)
+        R = u @ vt
+    return R, t
 
 
 def validate_intrinsics(K: np.ndarray) -> np.ndarray:
@@ -264,6 +266,7 @@ class Renderer:
         self._segmap_key: tuple | None = None
         self._segmap = np.zeros(1, np.int64)
         self._closed = False
+        self._force_segmentation = False  # tests: always use the segmentation pass
         self.set_lights(None)
 
     # ------------------------------------------------------------------ scene set-up
@@ -420,7 +423,11 @@ class Renderer:
             slots = self._place(objects, primitives)
             self._update(K)
             mujoco.mjr_render(self._rect, self._scene, self._con)
-            mujoco.mjr_readPixels(self._rgb, self._depth if depth else None, self._rect, self._con)
+            # One thing in the scene: its mask is where depth was written (same rasteriser,
+            # same coverage), so the segmentation pass is skipped.
+            single = len(slots) == 1 and (masks or full_masks) and not self._force_segmentation
+            read_depth = depth or single
+            mujoco.mjr_readPixels(self._rgb, self._depth if read_depth else None, self._rect, self._con)
             rgb = np.ascontiguousarray(self._rgb[::-1])
             z = None
             if depth:
@@ -432,15 +439,19 @@ class Renderer:
             inst = mask_visib = mask_full = None
             n_obj = len(objects)
             if masks or full_masks:
-                lut = np.full(self.model.nmocap + 1, -1, np.int32)
-                for i, mid in enumerate(slots):
-                    lut[mid + 1] = i
-                inst = self._segment(lut)
+                if single:
+                    inst = np.where(self._depth[::-1] > 0.0, np.int32(0), np.int32(-1))
+                else:
+                    lut = np.full(self.model.nmocap + 1, -1, np.int32)
+                    for i, mid in enumerate(slots):
+                        lut[mid + 1] = i
+                    inst = self._segment(lut)
                 mask_visib = inst[None] == np.arange(n_obj, dtype=np.int32)[:, None, None]
                 if background is not None:
-                    bg = inst < 0
-                    rgb[bg] = background[bg]
-            if full_masks:
+                    np.copyto(rgb, background, where=(inst < 0)[..., None])
+            if full_masks and single:
+                mask_full = mask_visib.copy()
+            elif full_masks:
                 mask_full = np.zeros((n_obj, self.height, self.width), bool)
                 saved = self.data.mocap_pos.copy()
                 for i in range(n_obj):
