@@ -91,3 +91,18 @@ def test_bad_input(tmp_path, models):
         CropStream(StreamConfig(str(models), workers=0, obj_ids=(99,)))
     with pytest.raises(ValueError, match="crop_size"):
         StreamConfig(str(models), crop_size=30)
+
+
+def test_curriculum_starts_plain_and_ends_full(models):
+    cfg = StreamConfig(str(models), crop_size=32, batch_size=6, workers=0, augment=False, occlusion=1.0, curriculum=100)
+    with CropStream(cfg) as s:
+        easy, full = s.batch(0), s.batch(100)
+
+    def plain(rgb, mask):
+        bg = rgb[mask == 0]
+        return len(np.unique(bg, axis=0)) == 1
+
+    assert all(plain(easy["rgb"][i], easy["mask_visib"][i]) for i in range(6))
+    assert not any(plain(full["rgb"][i], full["mask_visib"][i]) for i in range(6))
+    with pytest.raises(ValueError, match="curriculum"):
+        StreamConfig(str(models), curriculum=-1)

@@ -48,6 +48,12 @@ class StreamConfig:
         distance: camera distance range in object diameters.
         background: "textured" (procedural patterns) or "plain" (one random colour per crop):
             plain backgrounds and no occlusion make a much easier task for tiny smoke runs.
+        curriculum: number of batches over which the task grows from easy to the full setting
+            (0 = full from the start). At batch b the difficulty is d = min(1, b / curriculum):
+            a crop gets a textured background with probability d (else a plain one) and
+            occluders with probability ``occlusion * d``. Small networks trained from scratch
+            learn nothing in the first thousands of steps on the full setting, and quickly on
+            plain backgrounds; the ramp is a pure function of b, so determinism is kept.
     """
 
     models_dir: str
@@ -61,10 +67,13 @@ class StreamConfig:
     pad: float = 1.5
     distance: tuple[float, float] = (2.5, 9.0)
     background: str = "textured"
+    curriculum: int = 0
 
     def __post_init__(self) -> None:
         if self.background not in ("textured", "plain"):
             raise ValueError(f"background must be 'textured' or 'plain', got {self.background!r}")
+        if self.curriculum < 0:
+            raise ValueError(f"curriculum must be >= 0 batches, got {self.curriculum}")
         if not 0.0 <= self.occlusion <= 1.0:
             raise ValueError(f"occlusion must be a probability in [0, 1], got {self.occlusion}")
         if self.crop_size < 8 or self.crop_size % 4:
@@ -117,8 +126,11 @@ class _Worker:
         bank_rng = np.random.default_rng([cfg.seed, 2**31 - 2])
         self.backgrounds = np.stack([random_background(bank_rng, S) for _ in range(BACKGROUND_BANK)])
 
-    def background(self, rng: np.random.Generator) -> np.ndarray:
-        if self.cfg.background == "plain":
+    def difficulty(self, b: int) -> float:
+        return 1.0 if self.cfg.curriculum == 0 else min(1.0, b / self.cfg.curriculum)
+
+    def background(self, rng: np.random.Generator, difficulty: float = 1.0) -> np.ndarray:
+        if self.cfg.background == "plain" or (difficulty < 1.0 and rng.random() >= difficulty):
             S = self.cfg.crop_size
             return np.broadcast_to(rng.integers(0, 256, 3).astype(np.uint8), (S, S, 3)).copy()
         bg = self.backgrounds[rng.integers(len(self.backgrounds))]
@@ -144,7 +156,7 @@ class _Worker:
         T = np.asarray(G.crop_transform(centers, sides, cfg.crop_size), np.float64)
         return poses, centers, sides, T
 
-    def _render(self, rng: np.random.Generator, p, side: float, T: np.ndarray):
+    def _render(self, rng: np.random.Generator, p, side: float, T: np.ndarray, difficulty: float = 1.0):
         """Render one crop through K_B = T K with occluders, lights and a background.
 
         Returns (rgb, visible mask) or None when too little of the target is visible."""
@@ -156,7 +168,7 @@ class _Worker:
         K_B = T @ p.K
         objects = [(p.obj_id, p.R, p.t)]
         prims = []
-        if rng.random() < cfg.occlusion:  # occluders between the camera and the target
+        if rng.random() < cfg.occlusion * difficulty:  # occluders between the camera and the target
             for _ in range(rng.integers(1, 3)):
                 depth = p.t[2] * rng.uniform(0.55, 0.9)
                 off = rng.uniform(-0.45, 0.45, 2) * side / p.K[0, 0] * depth
@@ -177,7 +189,7 @@ class _Worker:
             for _ in range(rng.integers(1, 3))
         ]
         self.renderer.set_lights(lights, headlight=(rng.uniform(0.1, 0.4), rng.uniform(0.1, 0.5)))
-        out = self.renderer.render(objects, K_B, primitives=prims, background=self.background(rng), depth=False)
+        out = self.renderer.render(objects, K_B, primitives=prims, background=self.background(rng, difficulty), depth=False)
         mask = out.mask_visib[0]
         n_vis = int(mask.sum())
         if n_vis < MIN_VISIBLE_PX or n_vis < MIN_VISIBLE_FRACTION * S * S:
@@ -195,7 +207,7 @@ class _Worker:
         rgbs, masks = [None] * B, [None] * B
         for j in range(B):
             for attempt in range(50):
-                got = self._render(rngs[j], poses[j], sides[j], T[j])
+                got = self._render(rngs[j], poses[j], sides[j], T[j], self.difficulty(b))
                 if got is not None:
                     rgbs[j], masks[j] = got
                     break

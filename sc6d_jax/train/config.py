@@ -56,12 +56,15 @@ class StreamSettings:
         augment: colour augmentation and random in-plane 90-degree rotations.
         occlusion: probability that occluders are drawn over the target (``None`` = the
             stream's default).
+        curriculum: steps over which backgrounds and occlusion ramp from plain/none to the
+            full setting (``sc6d_jax.data.StreamConfig.curriculum``; 0 = full from the start).
     """
 
     batch_size: int = 32
     obj_ids: tuple[int, ...] | None = None
     augment: bool = True
     occlusion: float | None = None
+    curriculum: int = 0
 
     def __post_init__(self) -> None:
         if not isinstance(self.batch_size, int) or self.batch_size < 1:
@@ -75,6 +78,8 @@ class StreamSettings:
             object.__setattr__(self, "obj_ids", ids)
         if self.occlusion is not None and not 0.0 <= self.occlusion <= 1.0:
             raise ValueError(f"stream.occlusion must be in [0, 1] or None, got {self.occlusion!r}")
+        if not isinstance(self.curriculum, int) or self.curriculum < 0:
+            raise ValueError(f"stream.curriculum must be a non-negative integer, got {self.curriculum!r}")
 
 
 @dataclass(frozen=True)

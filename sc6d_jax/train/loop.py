@@ -322,6 +322,8 @@ def train(
     )
     if cfg.stream.occlusion is not None:
         common["occlusion"] = cfg.stream.occlusion
+    if cfg.stream.curriculum:
+        common["curriculum"] = cfg.stream.curriculum
     scfg = data_fns.stream_config(batch_size=local_bs, seed=_process_seed(cfg.seed, pidx, pcount), **common)
     stream = data_fns.stream(scfg, start)
     try:
