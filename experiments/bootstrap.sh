@@ -39,7 +39,7 @@ have_lib 'libEGL.so.1 '      || need_pkgs+=(libegl1)
 have_lib 'libEGL_mesa.so.0'  || need_pkgs+=(libegl-mesa0)
 have_lib 'libOpenGL.so.0'    || need_pkgs+=(libopengl0)
 have_lib 'libGL.so.1 '       || need_pkgs+=(libgl1)
-ls /usr/lib/*/dri/swrast_dri.so /usr/lib/dri/swrast_dri.so >/dev/null 2>&1 || need_pkgs+=(libgl1-mesa-dri)
+[[ -n "$(ls /usr/lib/*/dri/swrast_dri.so /usr/lib/dri/swrast_dri.so 2>/dev/null)" ]] || need_pkgs+=(libgl1-mesa-dri)
 "$PYTHON" -c 'import ensurepip, venv' >/dev/null 2>&1 || need_pkgs+=("python3-venv")
 
 if ((${#need_pkgs[@]})); then
