@@ -19,7 +19,7 @@ Image mode::
 ``K.json``: ``{"cam_K": [9 numbers]}``, ``{"K": [[...],[...],[...]]}`` or a 3x3 list.
 ``BOXES.json``: a list of ``[x, y, w, h]`` (then ``--obj-ids`` gives the ids) or of objects
 ``{"bbox": [...], "obj_id": ID}`` (``category_id`` accepted). Prints the poses as JSON and
-writes an overlay PNG (model points at the estimated pose from the models folder recorded in the
+writes an overlay PNG (the model silhouette rendered at the estimated pose, from the models folder recorded in the
 run, or the object axes when it is not available).
 """
 
@@ -211,30 +211,30 @@ def read_boxes(path: Path, obj_ids: str | None) -> tuple[np.ndarray, list[int]]:
 
 
 def draw_overlay(image: np.ndarray, K: np.ndarray, preds, models_dir: str | None) -> np.ndarray:
-    """RGB image with the model points (or axes) of each estimate projected, and its box."""
+    """RGB image with each estimate drawn: the model's silhouette contour rendered at the
+    estimated pose (MuJoCo, the project's renderer) and its box; the object axes when no model
+    file is available."""
     import cv2
 
-    from sc6d_jax.bop import load_model_points
+    from sc6d_jax.bop import model_path
+    from sc6d_jax.render import load_mesh, render_depth
 
     out = image.copy()
+    H, W = out.shape[:2]
     colors = [(255, 64, 64), (64, 255, 64), (64, 128, 255), (255, 255, 0), (255, 0, 255), (0, 255, 255)]
+    thick = max(1, round(max(H, W) / 320))
     for n, p in enumerate(preds):
         col = colors[n % len(colors)]
-        pts = None
+        mesh = None
         if models_dir:
             try:
-                pts = load_model_points(models_dir, p.obj_id)
+                mesh = load_mesh(model_path(models_dir, p.obj_id))
             except (FileNotFoundError, ValueError):
-                pts = None
-        if pts is not None and len(pts):
-            pts = pts[np.random.default_rng(0).permutation(len(pts))[:2000]]
-            cam = pts @ p.R.T + p.t
-            cam = cam[cam[:, 2] > 1e-6]
-            uv = cam @ K.T
-            uv = uv[:, :2] / uv[:, 2:3]
-            for u, v in uv:
-                if 0 <= u < out.shape[1] and 0 <= v < out.shape[0]:
-                    out[int(round(v)), int(round(u))] = col
+                mesh = None
+        if mesh is not None and p.t[2] > 0:
+            mask = (render_depth(mesh, K, p.R, p.t, W, H) > 0).astype(np.uint8)
+            contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+            cv2.drawContours(out, contours, -1, col, thick, cv2.LINE_AA)
         else:  # axes, 0.5 x box size at the estimated depth
             L = 0.5 * max(p.box[2], p.box[3]) * p.t[2] / K[0, 0]
             ends = np.vstack([np.zeros(3), L * np.eye(3)]) @ p.R.T + p.t
