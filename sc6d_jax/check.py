@@ -64,6 +64,7 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
 
 def run_checks(n_poses: int = 6, seed: int = 0, out_png: Path | None = None) -> list[dict]:
     from sc6d_jax import geometry as G
+    from sc6d_jax.data import project_box
     from sc6d_jax.render import Renderer
 
     meshes = check_meshes()
@@ -78,14 +79,11 @@ def run_checks(n_poses: int = 6, seed: int = 0, out_png: Path | None = None) -> 
             out = big.render([(obj_id, R, t)], K, full_masks=True)
             mask = out.mask_full[0]
             # 1. silhouette box vs projected vertices
-            v = (R @ meshes[obj_id].vertices.T).T + t
-            uv = (K @ v.T).T
-            uv = uv[:, :2] / uv[:, 2:]
-            proj_box = np.array([uv[:, 0].min(), uv[:, 1].min(), uv[:, 0].max(), uv[:, 1].max()])
+            xywh = project_box(np.asarray(meshes[obj_id].vertices), K, R, t)
+            proj_box = np.array([xywh[0], xywh[1], xywh[0] + xywh[2], xywh[1] + xywh[3]])
             sil_box = _box_of(mask)
             box_err = float(np.abs(proj_box - sil_box).max()) if sil_box is not None else np.inf
             # 2. cut crop vs crop rendered through K_B
-            xywh = np.array([proj_box[0], proj_box[1], proj_box[2] - proj_box[0], proj_box[3] - proj_box[1]])
             center, side = G.crop_box(xywh)
             T = np.asarray(G.crop_transform(center, side, CROP), np.float64)
             K_B = np.asarray(G.crop_intrinsics(K, T), np.float64)
@@ -101,10 +99,6 @@ def run_checks(n_poses: int = 6, seed: int = 0, out_png: Path | None = None) -> 
             R_allo = np.asarray(G.egocentric_to_allocentric(R, t), np.float64)
             t2 = np.array([-t[0] * 0.8 + 0.1 * z, t[1] * -0.5, z])
             R2 = np.asarray(G.allocentric_to_egocentric(R_allo, t2), np.float64)
-            v2 = (R2 @ meshes[obj_id].vertices.T).T + t2
-            uv2 = (K @ v2.T).T
-            uv2 = uv2[:, :2] / uv2[:, 2:]
-            c2 = 0.5 * (uv2.min(0) + uv2.max(0))
             # same crop scale as the first view, centred on the projected origin offset alike
             o1 = (K @ t)[:2] / t[2]
             o2 = (K @ t2)[:2] / t2[2]
@@ -114,7 +108,6 @@ def run_checks(n_poses: int = 6, seed: int = 0, out_png: Path | None = None) -> 
             rows.append(
                 dict(pose=i, obj_id=obj_id, box_err_px=box_err, crop_iou=iou_crop, t_rel_err=t_err, allo_iou=iou_allo)
             )
-            del c2
             if out_png is not None and i < 4:
                 vis = out.rgb.copy()
                 x0, y0, x1, y1 = proj_box.astype(int)

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from sc6d_jax.inference._matching import match, match_dense
-from sc6d_jax.inference._refine import _exp_so3, refine_rotations
+from sc6d_jax.geometry import axis_angle_to_matrix
+from sc6d_jax.inference._refine import refine_rotations
 
 
 def _unit(x):
@@ -62,9 +63,9 @@ def _random_embedder(seed: int, dim: int = 16):
 def test_refinement_recovers_rotation_from_a_nearby_start():
     embed = _random_embedder(1)
     rng = np.random.default_rng(2)
-    R_true = jnp.stack([_exp_so3(jnp.asarray(w, jnp.float32)) for w in rng.normal(size=(4, 3))])
+    R_true = jnp.stack([axis_angle_to_matrix(jnp.asarray(w, jnp.float32)) for w in rng.normal(size=(4, 3))])
     queries = jax.vmap(embed)(R_true)
-    R0 = jnp.stack([r @ _exp_so3(jnp.asarray(d, jnp.float32)) for r, d in zip(R_true, 0.08 * rng.normal(size=(4, 3)))])
+    R0 = jnp.stack([r @ axis_angle_to_matrix(jnp.asarray(d, jnp.float32)) for r, d in zip(R_true, 0.08 * rng.normal(size=(4, 3)))])
     R, cos = refine_rotations(embed, queries, R0, jnp.zeros(4, jnp.int32), max_steps=64)
     cos0 = jnp.einsum("be,be->b", queries, jax.vmap(embed)(R0))
     assert np.all(np.asarray(cos) >= np.asarray(cos0) - 1e-6)

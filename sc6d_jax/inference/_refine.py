@@ -15,17 +15,7 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
-
-def _exp_so3(w: jax.Array) -> jax.Array:
-    """Rodrigues' formula, smooth at w = 0 (Taylor terms below 1e-4 rad)."""
-    theta2 = jnp.sum(w * w)
-    small = theta2 < 1e-8
-    theta2_s = jnp.where(small, 1.0, theta2)
-    theta = jnp.sqrt(theta2_s)
-    a = jnp.where(small, 1.0 - theta2 / 6.0, jnp.sin(theta) / theta)
-    b = jnp.where(small, 0.5 - theta2 / 24.0, (1.0 - jnp.cos(theta)) / theta2_s)
-    wx = jnp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]], dtype=w.dtype)
-    return jnp.eye(3, dtype=w.dtype) + a * wx + b * (wx @ wx)
+from sc6d_jax.geometry import axis_angle_to_matrix
 
 
 def refine_rotation(
@@ -42,12 +32,12 @@ def refine_rotation(
     """
 
     def loss(w, _):
-        return 1.0 - jnp.dot(query, embed(R0 @ _exp_so3(w)))
+        return 1.0 - jnp.dot(query, embed(R0 @ axis_angle_to_matrix(w)))
 
     sol = optx.minimise(
         loss, optx.BFGS(rtol=tol, atol=tol), jnp.zeros(3, R0.dtype), max_steps=max_steps, throw=False
     )
-    R = R0 @ _exp_so3(sol.value)
+    R = R0 @ axis_angle_to_matrix(sol.value)
     c_new = jnp.dot(query, embed(R))
     c_old = jnp.dot(query, embed(R0))
     keep = (c_new >= c_old) & jnp.all(jnp.isfinite(R))

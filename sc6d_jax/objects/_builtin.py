@@ -36,6 +36,7 @@ import trimesh
 
 from sc6d_jax._io import atomic_directory, atomic_write_bytes
 from sc6d_jax.bop import ModelInfo, write_models_info
+from sc6d_jax.render._mesh import mesh_diameter
 
 DEFAULT_SEED = 0
 
@@ -200,18 +201,11 @@ def builtin_objects(seed: int = DEFAULT_SEED) -> list[BuiltinObject]:
     return out
 
 
-def diameter(vertices: np.ndarray) -> float:
-    """Largest distance between two vertices (on the convex hull)."""
-    hull = trimesh.convex.convex_hull(vertices).vertices
-    d = hull[:, None, :] - hull[None, :, :]
-    return float(np.sqrt((d * d).sum(-1)).max())
-
-
 def model_info(obj: BuiltinObject) -> ModelInfo:
     lo, hi = obj.mesh.bounds
     return ModelInfo(
         obj.obj_id,
-        diameter(obj.mesh.vertices),
+        mesh_diameter(obj.mesh),
         tuple(float(v) for v in lo),  # type: ignore[arg-type]
         tuple(float(v) for v in hi - lo),  # type: ignore[arg-type]
         [np.asarray(s) for s in obj.symmetries_discrete],
