@@ -14,6 +14,11 @@ must be on a filesystem all processes see; process 0 writes it)::
     sc6d train ... --coordinator host0:1234 --num-processes 2 --process-id 1   # on host 1
 
 With ``--resume`` and no ``--preset``, the config is read from ``RUN_DIR/config.json``.
+
+Any config field can be set with ``--set KEY=VALUE`` (repeatable; applied last), the key dotted
+as in ``config.json``: ``--set loss.z_mode=regression --set model.use_pe=false --set
+optim.lr=1e-3 --set stream.occlusion=none --set steps=200``. Values are parsed with the field's
+type (bool: true/false/1/0/yes/no; tuples: comma-separated; ``none`` for optional fields).
 """
 
 from __future__ import annotations
@@ -21,9 +26,119 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
+import types
+import typing
 from pathlib import Path
+from typing import Any
 
-__all__ = ["main"]
+__all__ = ["apply_overrides", "main", "parse_override"]
+
+_SECTIONS = ("model", "loss", "stream", "optim")
+_TRUE = {"true", "1", "yes", "on"}
+_FALSE = {"false", "0", "no", "off"}
+
+
+def _field_types(cls: type) -> dict[str, Any]:
+    hints = typing.get_type_hints(cls)
+    return {f.name: hints.get(f.name, Any) for f in dataclasses.fields(cls)}
+
+
+def _convert(text: str, tp: Any, key: str) -> Any:
+    """``text`` parsed as a value of the annotated type ``tp`` (ValueError naming ``key``)."""
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        if type(None) in args and text.strip().lower() in ("none", "null"):
+            return None
+        rest = [a for a in args if a is not type(None)]
+        errors = []
+        for a in rest:
+            try:
+                return _convert(text, a, key)
+            except ValueError as exc:
+                errors.append(str(exc))
+        raise ValueError(errors[0] if len(errors) == 1 else f"--set {key}={text}: not a valid value ({'; '.join(errors)})")
+    if origin is tuple:
+        items = [x.strip() for x in text.strip().strip("()[]").split(",") if x.strip()]
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(x, args[0], key) for x in items)
+        if len(items) != len(args):
+            raise ValueError(f"--set {key}={text}: expected {len(args)} comma-separated values, got {len(items)}")
+        return tuple(_convert(x, a, key) for x, a in zip(items, args))
+    if tp is bool:
+        low = text.strip().lower()
+        if low in _TRUE:
+            return True
+        if low in _FALSE:
+            return False
+        raise ValueError(f"--set {key}={text}: expected a boolean (true/false)")
+    if tp is int:
+        try:
+            return int(text.strip().replace("_", ""))
+        except ValueError:
+            raise ValueError(f"--set {key}={text}: expected an integer") from None
+    if tp is float:
+        try:
+            return float(text)
+        except ValueError:
+            raise ValueError(f"--set {key}={text}: expected a number") from None
+    if tp is str:
+        return text
+    raise ValueError(f"--set {key}: cannot set a field of type {tp!r} from the command line")
+
+
+def parse_override(item: str) -> tuple[str, str]:
+    """``"KEY=VALUE"`` -> ``(KEY, VALUE)`` (ValueError when there is no ``=`` or no key)."""
+    key, sep, value = item.partition("=")
+    key = key.strip()
+    if not sep or not key:
+        raise ValueError(f"--set expects KEY=VALUE (e.g. loss.z_mode=regression), got {item!r}")
+    return key, value
+
+
+def apply_overrides(cfg: Any, items: list[str]) -> Any:
+    """A copy of the TrainConfig ``cfg`` with ``--set KEY=VALUE`` items applied in order.
+
+    KEY is a top-level field (``steps``, ``seed``, ``z_range``, ...) or ``SECTION.FIELD`` with
+    SECTION one of model, loss, stream, optim. Setting ``stream.obj_ids`` also sets
+    ``model.n_objects`` unless that is set too. Raises ValueError naming an unknown key, a value
+    that does not parse as the field's type, or one the config rejects.
+    """
+    from sc6d_jax.train.config import TrainConfig
+
+    top = _field_types(TrainConfig)
+    sections = {name: getattr(cfg, name) for name in _SECTIONS}
+    changes: dict[str, Any] = {}
+    sec_changes: dict[str, dict[str, Any]] = {name: {} for name in _SECTIONS}
+    for item in items:
+        key, text = parse_override(item)
+        parts = key.split(".")
+        if len(parts) == 1 and parts[0] in top and parts[0] not in _SECTIONS:
+            changes[parts[0]] = _convert(text, top[parts[0]], key)
+        elif len(parts) == 2 and parts[0] in _SECTIONS:
+            types_ = _field_types(type(sections[parts[0]]))
+            if parts[1] not in types_:
+                raise ValueError(
+                    f"--set: unknown config key {key!r}; fields of {parts[0]}: {', '.join(sorted(types_))}"
+                )
+            sec_changes[parts[0]][parts[1]] = _convert(text, types_[parts[1]], key)
+        else:
+            known = sorted(n for n in top if n not in _SECTIONS) + [f"{s}.FIELD" for s in _SECTIONS]
+            raise ValueError(f"--set: unknown config key {key!r}; known: {', '.join(known)}")
+    obj_ids = sec_changes["stream"].get("obj_ids")
+    if obj_ids is not None and "n_objects" not in sec_changes["model"]:
+        sec_changes["model"]["n_objects"] = len(obj_ids)
+    for name, ch in sec_changes.items():
+        if ch:
+            try:
+                changes[name] = dataclasses.replace(sections[name], **ch)
+            except ValueError as exc:
+                raise ValueError(f"--set {name}: {exc}") from exc
+    if not changes:
+        return cfg
+    try:
+        return cfg.replace(**changes)
+    except ValueError as exc:
+        raise ValueError(f"--set: {exc}") from exc
 
 
 def _obj_ids(text: str) -> tuple[int, ...]:
@@ -54,6 +169,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--init-weights", type=Path, default=None, help="local ResNet weights file for the backbone")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--quiet", action="store_true", help="do not print the config")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="set a config field, e.g. loss.z_mode=regression, model.use_pe=false (repeatable)")
     g = p.add_argument_group("multi-host (jax.distributed)")
     g.add_argument("--coordinator", default=None, help="HOST:PORT of process 0's coordinator service")
     g.add_argument("--num-processes", type=int, default=None, help="number of processes in the run")
@@ -97,6 +214,7 @@ def main(argv: list[str]) -> int:
             changes["model"] = dataclasses.replace(cfg.model, n_objects=len(args.obj_ids))
     if changes:
         cfg = cfg.replace(**changes)
+    cfg = apply_overrides(cfg, args.overrides)
     try:
         train(
             cfg, args.models, args.out, resume=args.resume, workers=args.workers,
