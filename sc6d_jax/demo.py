@@ -19,7 +19,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 
 def _step(msg: str) -> None:
@@ -39,34 +38,10 @@ def _ar_groups(scores: dict, symmetric: set[int]) -> dict[str, float]:
 
 
 def write_overlays(dataset: Path, results: Path, run: Path | None, out_dir: Path, n_images: int = 4) -> list[Path]:
-    """Side-by-side pictures: rendered image | estimated poses (model points) per image."""
-    import cv2
+    """Side-by-side pictures: rendered image | estimated poses per image (``sc6d_jax.viz.overlay_figures``)."""
+    from sc6d_jax.viz import overlay_figures
 
-    from sc6d_jax._io import atomic_write_bytes
-    from sc6d_jax.bop import BopDataset, read_results_csv
-    from sc6d_jax.inference.cli import draw_overlay
-    from sc6d_jax.inference._estimator import PosePrediction
-
-    ds = BopDataset(dataset)
-    ests = read_results_csv(results)
-    written = []
-    keys = sorted({(e.scene_id, e.im_id) for e in ests})[:n_images]
-    for scene_id, im_id in keys:
-        img = ds.load_rgb(scene_id, im_id)
-        K = ds.scene_camera(scene_id)[im_id].K
-        infos = ds.scene_gt_info(scene_id)[im_id]
-        gts = ds.scene_gt(scene_id)[im_id]
-        preds = []
-        for e in (e for e in ests if (e.scene_id, e.im_id) == (scene_id, im_id)):
-            box = next((np.array(i.bbox_visib, float) for g, i in zip(gts, infos) if g.obj_id == e.obj_id), np.zeros(4))
-            preds.append(PosePrediction(obj_id=e.obj_id, box=box, R=e.R, t=e.t, score=e.score, prob=0.0,
-                                        R_topk=e.R[None], prob_topk=np.zeros(1), score_topk=np.zeros(1)))
-        pic = np.concatenate([img, draw_overlay(img, K, preds, str(ds.models_dir))], axis=1)
-        ok, buf = cv2.imencode(".png", pic[..., ::-1])
-        p = out_dir / f"poses_{scene_id:06d}_{im_id:06d}.png"
-        atomic_write_bytes(p, buf.tobytes())
-        written.append(p)
-    return written
+    return overlay_figures(dataset, results, out_dir, n_images=n_images)
 
 
 def main(argv: list[str]) -> int:

@@ -71,21 +71,13 @@ cells = [
     nbf.v4.new_markdown_cell(
         "## The rotation distribution\n\n"
         "Each of the top-200 library rotations is drawn as the direction of the object's z axis (Mollweide "
-        "projection: longitude, latitude) coloured by the rotation angle about it, sized by probability; the ring "
-        "marks the ground truth. A symmetric object would show several equally likely modes."
+        "projection: longitude, latitude) coloured by the in-plane angle about it, sized by probability; the ring "
+        "marks the ground truth (`sc6d_jax.viz.rotation_distribution_figure`, also used by `sc6d eval --figures`). A symmetric object would show several equally likely modes."
     ),
     nbf.v4.new_code_cell(
-        "def sphere_coords(R):\n"
-        "    z = R[..., :, 2]\n"
-        "    lon = np.arctan2(z[..., 1], z[..., 0]); lat = np.arcsin(np.clip(z[..., 2], -1, 1))\n"
-        "    roll = np.arctan2(R[..., 1, 0], R[..., 0, 0])\n"
-        "    return lon, lat, roll\n"
-        "lon, lat, roll = sphere_coords(pred.R_topk)\n"
-        "fig = plt.figure(figsize=(8, 4.5)); ax = fig.add_subplot(111, projection='mollweide')\n"
-        "sc = ax.scatter(lon, lat, s=4000 * pred.prob_topk / pred.prob_topk.max() * 0.05 + 2, c=roll, cmap='hsv', vmin=-np.pi, vmax=np.pi)\n"
-        "glon, glat, _ = sphere_coords(gt.R)\n"
-        "ax.scatter([glon], [glat], s=300, facecolors='none', edgecolors='k', linewidths=2)\n"
-        "ax.grid(True); fig.colorbar(sc, label='in-plane angle (rad)'); ax.set_title('top-200 rotations');"
+        "from sc6d_jax.viz import rotation_distribution_figure\n"
+        "fig = rotation_distribution_figure(gt.R, pred.R_topk, pred.prob_topk, title='top-200 rotations')\n"
+        "fig"
     ),
 ]
 nb = nbf.v4.new_notebook(cells=cells, metadata={"kernelspec": {"name": "python3", "display_name": "Python 3", "language": "python"}})
