@@ -1,11 +1,16 @@
 """``sc6d eval``: BOP19 average recall of a results CSV on a BOP dataset.
 
     sc6d eval --dataset DIR --results METHOD_DATASET-SPLIT.csv --out SCORES.json [--split test]
+              [--figures FIG_DIR [--run RUN_DIR]]
 
 Prints a table (overall and per object) and writes the scores as JSON with the BOP toolkit's key
 names (bop19_average_recall, bop19_average_recall_vsd/_mssd/_mspd, bop19_average_time_per_image)
 plus per-object recalls. VSD needs depth images; where the dataset has none it is skipped, the
 AR is the mean of AR_MSSD and AR_MSPD, and the output says so.
+
+With ``--figures DIR`` it then writes pictures (``sc6d_jax.viz.write_eval_figures``): overlays of
+the estimated poses on the first images, a per-object AR bar chart and, with ``--run RUN_DIR``
+(the model that made the results), rotation-distribution plots of a few targets.
 """
 
 from __future__ import annotations
@@ -65,7 +70,17 @@ def main(argv: list[str]) -> int:
                     help="minimum visible fraction of a ground truth to count (default 0.1; negative = the "
                          "toolkit's 'inst_count most visible' rule)")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    ap.add_argument("--figures", default=None, help="folder for figures (pose overlays, AR per object, "
+                                                     "rotation distributions with --run)")
+    ap.add_argument("--run", default=None, help="training run that made the results (rotation-distribution figures)")
+    ap.add_argument("--n-images", type=int, default=4, help="images with overlays in --figures (default 4)")
     args = ap.parse_args(argv)
+    if args.run is not None and args.figures is None:
+        raise ValueError("--run is only used with --figures DIR")
+    if args.run is not None and not (Path(args.run) / "config.json").is_file():
+        raise FileNotFoundError(f"{Path(args.run) / 'config.json'}: --run is not a training run directory")
+    if args.n_images < 0:
+        raise ValueError(f"--n-images must be >= 0, got {args.n_images}")
 
     from sc6d_jax.bop import BopDataset, read_results_csv
     from sc6d_jax.metrics._evaluate import evaluate_bop19
@@ -84,4 +99,10 @@ def main(argv: list[str]) -> int:
     print(format_table(scores))
     atomic_write_json(args.out, _jsonable(scores))
     print(f"scores written to {args.out}")
+    if args.figures is not None:
+        from sc6d_jax.viz import write_eval_figures
+
+        figs = write_eval_figures(args.dataset, args.results, args.figures, run=args.run, n_images=args.n_images,
+                                  split=args.split, scores=_jsonable(scores))
+        print(f"{len(figs)} figures written to {args.figures}")
     return 0
