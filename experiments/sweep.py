@@ -1,0 +1,466 @@
+"""Experiment sweeps: the paper's ablation (Table 3) and SO(3) sample count (supplementary table).
+
+    python experiments/sweep.py ablation --out DIR [--budget tiny|full] [--seeds 0,1,2] [--rows A0,A4,TTA]
+    python experiments/sweep.py so3-samples --run RUN_DIR --out DIR [--budget tiny|full] [--sizes 20000,60000]
+                                            [--no-refine] [--dataset BOP_DIR]
+
+Every configuration runs as separate processes (``sc6d train`` / ``sc6d predict`` / ``sc6d eval``
+through ``python -m sc6d_jax.cli``) with fixed seeds. The built-in objects and a rendered BOP
+test set are created once inside DIR. A run is finished when its scores JSON exists
+(``DIR/scores/NAME.json``); a rerun of the same command skips finished runs, resumes a killed
+training with ``sc6d train --resume`` and redoes only what is missing. Results: ``DIR/ablation.csv``
++ ``.md`` (mean and spread over seeds per row) and ``DIR/runs.csv`` (one line per run), or
+``DIR/so3_samples.csv`` + ``.md``; figures (``DIR/*.png``) with :mod:`sc6d_jax.viz`.
+
+Budgets: ``tiny`` = the tiny preset for a few steps on objects 1 and 2 (one asymmetric, one
+continuous symmetric), 1 scene x 2 images, a 20k library (a test runs a sweep in about a minute);
+``full`` = the cpu preset on all 14 built-in objects, 4 scenes x 10 images, the paper's 480k
+library.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+# --------------------------------------------------------------------------- configuration
+
+
+@dataclass(frozen=True)
+class Budget:
+    preset: str
+    steps: int | None  # None = the preset's
+    obj_ids: tuple[int, ...] | None  # None = all built-in objects
+    scenes: int
+    images_per_scene: int
+    objects_per_image: int
+    library_size: int
+    so3_sizes: tuple[int, ...]
+    seeds: tuple[int, ...]
+    checkpoint_every: int | None = None
+    train_sets: tuple[str, ...] = ()
+
+
+BUDGETS: dict[str, Budget] = {
+    "tiny": Budget(preset="tiny", steps=12, obj_ids=(1, 2), scenes=1, images_per_scene=2, objects_per_image=2,
+                   library_size=20_000, so3_sizes=(20_000, 60_000), seeds=(0,), checkpoint_every=12,
+                   train_sets=("stream.occlusion=0.0",)),
+    "full": Budget(preset="cpu", steps=None, obj_ids=None, scenes=4, images_per_scene=10, objects_per_image=5,
+                   library_size=480_000, so3_sizes=(20_000, 60_000, 180_000, 480_000, 1_440_000), seeds=(0, 1, 2)),
+}
+
+
+@dataclass(frozen=True)
+class Row:
+    """One line of the ablation table: training overrides (``sc6d train --set``) + predict flags."""
+
+    name: str
+    label: str
+    train: str  # name of the training this row evaluates (rows may share one)
+    sets: tuple[str, ...]
+    predict: tuple[str, ...] = field(default=())
+
+
+_NO_PE = "model.use_pe=false"
+ROWS: tuple[Row, ...] = (
+    Row("A0", "z regression", "A0", ("loss.z_mode=regression", "loss.z_loss=ce", _NO_PE)),
+    Row("A1", "z classification", "A1", ("loss.z_mode=classification", "loss.z_loss=ce", _NO_PE)),
+    Row("A2", "+ focal loss", "A2", ("loss.z_mode=classification", "loss.z_loss=focal", _NO_PE)),
+    Row("A3", "+ expectation", "A3", ("loss.z_mode=expectation", "loss.z_loss=focal", _NO_PE)),
+    Row("A4", "+ PE map", "A4", ("loss.z_mode=expectation", "loss.z_loss=focal", "model.use_pe=true")),
+    Row("TTA", "+ TTA (ours)", "A4", ("loss.z_mode=expectation", "loss.z_loss=focal", "model.use_pe=true"), ("--tta",)),
+    Row("IPDF", "A4 with an Implicit-PDF head", "IPDF",
+        ("loss.z_mode=expectation", "loss.z_loss=focal", "model.use_pe=true", "model.rot_head=ipdf")),
+)
+ROW_BY_NAME = {r.name: r for r in ROWS}
+METRICS = (("AR", "bop19_average_recall"), ("AR_MSSD", "bop19_average_recall_mssd"),
+           ("AR_MSPD", "bop19_average_recall_mspd"), ("AR_VSD", "bop19_average_recall_vsd"))
+
+
+# --------------------------------------------------------------------------- processes
+class StageFailed(RuntimeError):
+    pass
+
+
+_child: subprocess.Popen | None = None
+
+
+def _on_term(signum: int, frame: Any) -> None:  # pragma: no cover - exercised by the kill test
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def run_sc6d(args: Sequence[str], log: Path) -> float:
+    """``python -m sc6d_jax.cli ARGS`` with output to ``log``; seconds taken. StageFailed with the
+    log's tail on a non-zero exit. The child is terminated when this process is interrupted."""
+    global _child
+    log.parent.mkdir(parents=True, exist_ok=True)
+    cmd = [sys.executable, "-m", "sc6d_jax.cli", *map(str, args)]
+    t0 = time.perf_counter()
+    with open(log, "w", encoding="utf-8") as f:
+        f.write("$ " + " ".join(cmd[1:]) + "\n")
+        f.flush()
+        _child = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT)
+        try:
+            rc = _child.wait()
+        except BaseException:
+            _child.terminate()
+            try:
+                _child.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                _child.kill()
+            raise
+        finally:
+            _child = None
+    if rc != 0:
+        tail = "\n".join(log.read_text(encoding="utf-8", errors="replace").splitlines()[-15:])
+        raise StageFailed(f"`sc6d {args[0]}` exited with status {rc} (log {log}):\n{tail}")
+    return time.perf_counter() - t0
+
+
+def _say(msg: str) -> None:
+    print(msg, flush=True)
+
+
+def _parse_ints(text: str, what: str) -> tuple[int, ...]:
+    try:
+        vals = tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise ValueError(f"{what} must be comma-separated integers, got {text!r}") from None
+    if not vals:
+        raise ValueError(f"{what} is empty")
+    if any(v < 0 for v in vals):
+        raise ValueError(f"{what} must be non-negative, got {text!r}")
+    return vals
+
+
+def _check_settings(out: Path, kind: str, settings: dict[str, Any]) -> None:
+    """Record the sweep's settings in DIR/sweep.json; refuse to mix another budget into DIR."""
+    from sc6d_jax._io import atomic_write_json
+
+    path = out / "sweep.json"
+    if path.is_file():
+        saved = json.loads(path.read_text(encoding="utf-8"))
+        for k in ("kind", "budget", "run"):
+            if saved.get(k) != ({"kind": kind, **settings}).get(k):
+                raise ValueError(
+                    f"{out} holds a {saved.get('kind')} sweep with {k}={saved.get(k)!r}; this command has "
+                    f"{k}={({'kind': kind, **settings}).get(k)!r} (use another --out)"
+                )
+    atomic_write_json(path, {"kind": kind, **settings})
+
+
+def prepare_data(out: Path, budget: Budget, obj_ids: Sequence[int] | None) -> tuple[Path, Path]:
+    """Built-in objects (``DIR/models``) and a rendered BOP test set (``DIR/dataset``), once."""
+    models, dataset = out / "models", out / "dataset"
+    if not (models / "models_info.json").is_file():
+        _say(f"objects -> {models}")
+        run_sc6d(["objects", "--out", models, "--overwrite"], out / "logs" / "objects.log")
+    if not (dataset / "test_targets_bop19.json").is_file():
+        _say(f"rendering {budget.scenes} scene(s) x {budget.images_per_scene} images -> {dataset}")
+        args = ["render", "--models", models, "--out", dataset, "--scenes", budget.scenes,
+                "--images-per-scene", budget.images_per_scene, "--objects-per-image", budget.objects_per_image,
+                "--seed", 0, "--overwrite", "--no-progress"]
+        if obj_ids:
+            args += ["--obj-ids", ",".join(map(str, obj_ids))]
+        run_sc6d(args, out / "logs" / "render.log")
+    return models, dataset
+
+
+# --------------------------------------------------------------------------- summaries
+def _mean_std(vals: list[float]) -> tuple[float, float]:
+    v = [x for x in vals if x is not None and math.isfinite(x)]
+    if not v:
+        return float("nan"), float("nan")
+    m = sum(v) / len(v)
+    s = math.sqrt(sum((x - m) ** 2 for x in v) / (len(v) - 1)) if len(v) > 1 else 0.0
+    return m, s
+
+
+def _csv_text(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    for r in rows:
+        w.writerow(["" if (isinstance(x, float) and not math.isfinite(x)) else (f"{x:.4f}" if isinstance(x, float) else x) for x in r])
+    return buf.getvalue()
+
+
+def _fmt(m: float, s: float | None = None) -> str:
+    if not math.isfinite(m):
+        return "-"
+    return f"{m:.3f}" if s is None else f"{m:.3f} ± {s:.3f}"
+
+
+def _read_scores(path: Path) -> dict[str, Any]:
+    return json.loads(path.read_text(encoding="utf-8"))
+
+
+def summarize_ablation(out: Path, rows: Sequence[Row], seeds: Sequence[int], budget_name: str) -> list[Path]:
+    """ablation.csv/.md, runs.csv and ablation.png from the finished runs' scores."""
+    from sc6d_jax._io import atomic_write_text
+    from sc6d_jax.viz import grouped_bar_chart, save_figure
+
+    per_run, table = [], []
+    for row in rows:
+        vals: dict[str, list[float]] = {m: [] for m, _ in METRICS}
+        done_seeds = []
+        for seed in seeds:
+            p = out / "scores" / f"{row.name}_s{seed}.json"
+            if not p.is_file():
+                continue
+            sc = _read_scores(p)
+            done_seeds.append(seed)
+            line = [row.name, row.label, seed]
+            for m, key in METRICS:
+                v = sc.get(key)
+                v = float("nan") if v is None else float(v)
+                vals[m].append(v)
+                line.append(v)
+            t = sc.get("bop19_average_time_per_image")
+            line.append(float(t) if t is not None else float("nan"))
+            per_run.append(line)
+        stats = {m: _mean_std(vals[m]) for m, _ in METRICS}
+        table.append((row, done_seeds, stats))
+    header = ["row", "description", "seed"] + [m for m, _ in METRICS] + ["time_per_image_s"]
+    written = [atomic_write_text(out / "runs.csv", _csv_text(header, per_run))]
+    agg_header = ["row", "description", "n_seeds"] + [f"{m}_{k}" for m, _ in METRICS for k in ("mean", "std")]
+    agg = [[r.name, r.label, len(s)] + [v for m, _ in METRICS for v in st[m]] for r, s, st in table]
+    written.append(atomic_write_text(out / "ablation.csv", _csv_text(agg_header, agg)))
+    md = [f"Ablation (paper Table 3) on the built-in objects, budget `{budget_name}`; "
+          "mean ± sample std over seeds.", "",
+          "| row | setting | seeds | AR | AR_MSSD | AR_MSPD | AR_VSD |", "|---|---|---|---|---|---|---|"]
+    for r, s, st in table:
+        md.append(f"| {r.name} | {r.label} | {','.join(map(str, s)) or '-'} | "
+                  + " | ".join(_fmt(*st[m]) for m, _ in METRICS) + " |")
+    written.append(atomic_write_text(out / "ablation.md", "\n".join(md) + "\n"))
+    shown = [(r, st) for r, s, st in table if s]
+    if shown:
+        fig = grouped_bar_chart(
+            [r.name for r, _ in shown],
+            {m: [st[m][0] for _, st in shown] for m, _ in METRICS},
+            errors={m: [st[m][1] for _, st in shown] for m, _ in METRICS},
+            ylabel="average recall", title=f"ablation ({budget_name} budget): mean ± std over seeds",
+        )
+        written.append(save_figure(fig, out / "ablation.png"))
+    return written
+
+
+# --------------------------------------------------------------------------- ablation
+def _train_args(budget: Budget, models: Path, run_dir: Path, seed: int, sets: Sequence[str]) -> list[Any]:
+    args: list[Any] = ["train", "--models", models, "--out", run_dir, "--preset", budget.preset, "--seed", seed,
+                       "--resume", "--no-progress", "--quiet", "--workers", 1]
+    if budget.steps is not None:
+        args += ["--steps", budget.steps]
+    if budget.checkpoint_every is not None:
+        args += ["--checkpoint-every", budget.checkpoint_every]
+    if budget.obj_ids:
+        args += ["--obj-ids", ",".join(map(str, budget.obj_ids))]
+    for s in (*budget.train_sets, *sets):
+        args += ["--set", s]
+    return args
+
+
+def _training_finished(run_dir: Path) -> bool:
+    """The newest checkpoint is at the configured last step."""
+    cfg_path = run_dir / "config.json"
+    if not cfg_path.is_file():
+        return False
+    from sc6d_jax.train.checkpoint import checkpoint_dirs
+
+    found = checkpoint_dirs(run_dir)
+    steps = json.loads(cfg_path.read_text(encoding="utf-8")).get("steps")
+    return bool(found) and found[-1][0] == steps
+
+
+def ablation(out: Path, budget_name: str, seeds: Sequence[int] | None, row_names: Sequence[str] | None,
+             figures: bool = True) -> int:
+    budget = BUDGETS[budget_name]
+    seeds = tuple(seeds) if seeds else budget.seeds
+    rows = [ROW_BY_NAME[n] for n in row_names] if row_names else list(ROWS)
+    out.mkdir(parents=True, exist_ok=True)
+    _check_settings(out, "ablation", {"budget": budget_name})
+    models, dataset = prepare_data(out, budget, budget.obj_ids)
+    jobs = [(r, s) for s in seeds for r in rows]
+    t_all = time.perf_counter()
+    for i, (row, seed) in enumerate(jobs, 1):
+        tag = f"[ablation {i}/{len(jobs)}] {row.name} ({row.label}) seed {seed}"
+        name = f"{row.name}_s{seed}"
+        scores = out / "scores" / f"{name}.json"
+        if scores.is_file():
+            _say(f"{tag}: skipped (finished earlier: {scores.relative_to(out)})")
+            continue
+        t0 = time.perf_counter()
+        run_dir = out / "runs" / f"{row.train}_s{seed}"
+        logs = out / "logs"
+        if _training_finished(run_dir):
+            _say(f"{tag}: training {run_dir.name} finished earlier")
+        else:
+            resumed = (run_dir / "checkpoints").is_dir()
+            _say(f"{tag}: training {run_dir.name}" + (" (resuming)" if resumed else ""))
+            run_sc6d(_train_args(budget, models, run_dir, seed, row.sets), logs / f"{run_dir.name}.train.log")
+        results = out / "results" / f"{name}.csv"
+        if not results.is_file():
+            run_sc6d(["predict", "--run", run_dir, "--dataset", dataset, "--out", results,
+                      "--library-size", budget.library_size, "--no-progress", *row.predict],
+                     logs / f"{name}.predict.log")
+        ev = ["eval", "--dataset", dataset, "--results", results, "--out", scores, "--no-progress"]
+        if figures and seed == seeds[0]:
+            ev += ["--figures", out / "figures" / name]
+        run_sc6d(ev, logs / f"{name}.eval.log")
+        ar = _read_scores(scores).get("bop19_average_recall")
+        _say(f"{tag}: done in {time.perf_counter() - t0:.0f} s, AR {ar if ar is None else round(ar, 4)}")
+    paths = summarize_ablation(out, rows, seeds, budget_name)
+    _say((out / "ablation.md").read_text(encoding="utf-8"))
+    _say(f"ablation finished in {time.perf_counter() - t_all:.0f} s; wrote {', '.join(p.name for p in paths)}")
+    return 0
+
+
+# --------------------------------------------------------------------------- so3-samples
+def ms_per_crop(results_csv: Path) -> float:
+    """Median over images of (image time / crops in the image) in ms, leaving out the first image of
+    each crop count (its time includes compiling the predictor) when others remain."""
+    from sc6d_jax.bop import read_results_csv
+
+    per_image: dict[tuple[int, int], list[float]] = {}
+    for e in read_results_csv(results_csv):
+        per_image.setdefault((e.scene_id, e.im_id), []).append(float(e.time))
+    items = [(len(v), v[0]) for _, v in sorted(per_image.items())]
+    if not items:
+        return float("nan")
+    seen: set[int] = set()
+    warm = []
+    for n, t in items:
+        if n in seen:
+            warm.append(t / n)
+        seen.add(n)
+    vals = sorted(warm or [t / n for n, t in items])
+    mid = len(vals) // 2
+    med = vals[mid] if len(vals) % 2 else 0.5 * (vals[mid - 1] + vals[mid])
+    return 1000.0 * med
+
+
+def so3_samples(run: Path, out: Path, budget_name: str, sizes: Sequence[int] | None, refine: bool,
+                figures: bool = True, dataset: Path | None = None) -> int:
+    from sc6d_jax._io import atomic_write_text
+    from sc6d_jax.viz import grouped_bar_chart, save_figure
+
+    budget = BUDGETS[budget_name]
+    cfg_path = run / "config.json"
+    if not cfg_path.is_file():
+        raise FileNotFoundError(f"{cfg_path}: --run is not a training run directory")
+    obj_ids = json.loads(cfg_path.read_text(encoding="utf-8")).get("stream", {}).get("obj_ids")
+    sizes = tuple(sizes) if sizes else budget.so3_sizes
+    out.mkdir(parents=True, exist_ok=True)
+    _check_settings(out, "so3-samples", {"budget": budget_name, "run": str(run.resolve())})
+    if dataset is None:
+        _, dataset = prepare_data(out, budget, obj_ids)
+    elif not (dataset / "test_targets_bop19.json").is_file():
+        raise FileNotFoundError(f"{dataset / 'test_targets_bop19.json'}: --dataset is not a BOP test set")
+    configs = [(f"lib{n}", n, False) for n in sizes]
+    if refine:
+        configs.append((f"lib{min(sizes)}_refine", min(sizes), True))
+    t_all = time.perf_counter()
+    for i, (name, n, ref) in enumerate(configs, 1):
+        tag = f"[so3-samples {i}/{len(configs)}] {n} rotations" + (" + refinement" if ref else "")
+        scores = out / "scores" / f"{name}.json"
+        if scores.is_file():
+            _say(f"{tag}: skipped (finished earlier: {scores.relative_to(out)})")
+            continue
+        t0 = time.perf_counter()
+        results = out / "results" / f"{name}.csv"
+        if not results.is_file():
+            run_sc6d(["predict", "--run", run, "--dataset", dataset, "--out", results, "--library-size", n,
+                      "--no-progress", *(["--refine"] if ref else [])], out / "logs" / f"{name}.predict.log")
+        ev = ["eval", "--dataset", dataset, "--results", results, "--out", scores, "--no-progress"]
+        if figures and i == 1:
+            ev += ["--figures", out / "figures" / name]
+        run_sc6d(ev, out / "logs" / f"{name}.eval.log")
+        ar = _read_scores(scores).get("bop19_average_recall")
+        _say(f"{tag}: done in {time.perf_counter() - t0:.0f} s, AR {ar if ar is None else round(ar, 4)}, "
+             f"{ms_per_crop(results):.1f} ms/crop")
+    lines, md = [], [f"AR and time per crop by rotation-library size (run `{run.name}`, budget `{budget_name}`).", "",
+                     "| library | refine | AR | AR_MSSD | AR_MSPD | AR_VSD | ms/crop |", "|---|---|---|---|---|---|---|"]
+    for name, n, ref in configs:
+        p = out / "scores" / f"{name}.json"
+        if not p.is_file():
+            continue
+        sc = _read_scores(p)
+        vals = [float("nan") if sc.get(k) is None else float(sc[k]) for _, k in METRICS]
+        ms = ms_per_crop(out / "results" / f"{name}.csv")
+        lines.append([n, int(ref), *vals, ms])
+        md.append(f"| {n:,} | {'yes' if ref else 'no'} | " + " | ".join(_fmt(v) for v in vals) + f" | {ms:.1f} |")
+    header = ["library_size", "refine"] + [m for m, _ in METRICS] + ["ms_per_crop"]
+    written = [atomic_write_text(out / "so3_samples.csv", _csv_text(header, lines)),
+               atomic_write_text(out / "so3_samples.md", "\n".join(md) + "\n")]
+    if lines:
+        labels = [f"{r[0] // 1000}k" + ("+ref" if r[1] else "") for r in lines]
+        written.append(save_figure(grouped_bar_chart(labels, {m: [r[2 + j] for r in lines] for j, (m, _) in enumerate(METRICS)},
+                                                     ylabel="average recall", title="AR by library size"),
+                                   out / "so3_samples_ar.png"))
+        written.append(save_figure(grouped_bar_chart(labels, {"ms per crop": [r[-1] for r in lines]}, ylabel="ms per crop",
+                                                     title="time per crop (median over images)", ylim=None),
+                                   out / "so3_samples_ms.png"))
+    _say("\n".join(md))
+    _say(f"so3-samples finished in {time.perf_counter() - t_all:.0f} s; wrote {', '.join(p.name for p in written)}")
+    return 0
+
+
+# --------------------------------------------------------------------------- command line
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="sweep.py", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="sweep", required=True)
+    a = sub.add_parser("ablation", help="the paper's Table 3 (+ SO(3) encoder vs Implicit-PDF head)")
+    a.add_argument("--out", type=Path, required=True, help="sweep folder (created; rerun to resume)")
+    a.add_argument("--budget", choices=sorted(BUDGETS), default="tiny")
+    a.add_argument("--seeds", default=None, help="comma-separated training seeds (tiny: 0; full: 0,1,2)")
+    a.add_argument("--rows", default=None, help=f"comma-separated rows (default all: {','.join(ROW_BY_NAME)})")
+    a.add_argument("--no-figures", action="store_true", help="no per-run evaluation figures")
+    s = sub.add_parser("so3-samples", help="AR and ms per crop by rotation-library size")
+    s.add_argument("--run", type=Path, required=True, help="trained run directory")
+    s.add_argument("--out", type=Path, required=True, help="sweep folder (created; rerun to resume)")
+    s.add_argument("--budget", choices=sorted(BUDGETS), default="tiny")
+    s.add_argument("--sizes", default=None, help="comma-separated library sizes (tiny: 20000,60000; full: 20k..1.44M)")
+    s.add_argument("--no-refine", action="store_true", help="leave out the refined smallest library")
+    s.add_argument("--no-figures", action="store_true", help="no evaluation figures")
+    s.add_argument("--dataset", type=Path, default=None,
+                   help="existing BOP dataset to evaluate on (default: built-in objects rendered into --out)")
+    return p
+
+
+def main(argv: list[str]) -> int:
+    args = build_parser().parse_args(argv)
+    signal.signal(signal.SIGTERM, _on_term)
+    try:
+        if args.sweep == "ablation":
+            seeds = _parse_ints(args.seeds, "--seeds") if args.seeds else None
+            rows = None
+            if args.rows:
+                rows = [r.strip() for r in args.rows.split(",") if r.strip()]
+                bad = [r for r in rows if r not in ROW_BY_NAME]
+                if bad or not rows:
+                    raise ValueError(f"unknown row(s) {bad or args.rows!r}; rows: {', '.join(ROW_BY_NAME)}")
+            return ablation(args.out, args.budget, seeds, rows, figures=not args.no_figures)
+        sizes = _parse_ints(args.sizes, "--sizes") if args.sizes else None
+        return so3_samples(args.run, args.out, args.budget, sizes, refine=not args.no_refine,
+                           figures=not args.no_figures, dataset=args.dataset)
+    except (ValueError, FileNotFoundError, StageFailed) as exc:
+        print(f"sweep.py: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("sweep.py: interrupted; rerun the same command to resume", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
