@@ -128,6 +128,14 @@ def run_sc6d(args: Sequence[str], log: Path) -> float:
     return time.perf_counter() - t0
 
 
+def run_eval(args: Sequence[Any], scores: Path, log: Path) -> None:
+    """``sc6d eval ARGS --out`` a hidden name, renamed to ``scores`` once the command (figures
+    included) has succeeded: the scores JSON exists only for finished runs."""
+    tmp = scores.with_name(f".{scores.name}.partial")
+    run_sc6d([*args, "--out", tmp], log)
+    os.replace(tmp, scores)
+
+
 def _say(msg: str) -> None:
     print(msg, flush=True)
 
@@ -314,10 +322,10 @@ def ablation(out: Path, budget_name: str, seeds: Sequence[int] | None, row_names
             run_sc6d(["predict", "--run", run_dir, "--dataset", dataset, "--out", results,
                       "--library-size", budget.library_size, "--no-progress", *row.predict],
                      logs / f"{name}.predict.log")
-        ev = ["eval", "--dataset", dataset, "--results", results, "--out", scores, "--no-progress"]
+        ev = ["eval", "--dataset", dataset, "--results", results, "--no-progress"]
         if figures and seed == seeds[0]:
             ev += ["--figures", out / "figures" / name]
-        run_sc6d(ev, logs / f"{name}.eval.log")
+        run_eval(ev, scores, logs / f"{name}.eval.log")
         ar = _read_scores(scores).get("bop19_average_recall")
         _say(f"{tag}: done in {time.perf_counter() - t0:.0f} s, AR {ar if ar is None else round(ar, 4)}")
     paths = summarize_ablation(out, rows, seeds, budget_name)
@@ -382,10 +390,10 @@ def so3_samples(run: Path, out: Path, budget_name: str, sizes: Sequence[int] | N
         if not results.is_file():
             run_sc6d(["predict", "--run", run, "--dataset", dataset, "--out", results, "--library-size", n,
                       "--no-progress", *(["--refine"] if ref else [])], out / "logs" / f"{name}.predict.log")
-        ev = ["eval", "--dataset", dataset, "--results", results, "--out", scores, "--no-progress"]
+        ev = ["eval", "--dataset", dataset, "--results", results, "--no-progress"]
         if figures and i == 1:
             ev += ["--figures", out / "figures" / name]
-        run_sc6d(ev, out / "logs" / f"{name}.eval.log")
+        run_eval(ev, scores, out / "logs" / f"{name}.eval.log")
         ar = _read_scores(scores).get("bop19_average_recall")
         _say(f"{tag}: done in {time.perf_counter() - t0:.0f} s, AR {ar if ar is None else round(ar, 4)}, "
              f"{ms_per_crop(results):.1f} ms/crop")

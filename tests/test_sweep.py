@@ -1,0 +1,181 @@
+"""experiments/sweep.py end to end (real sc6d train / predict / eval subprocesses on the tiny budget),
+interruption and resume, so3-samples, ``sc6d eval --figures`` and ``sc6d train --set``."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SWEEP = REPO / "experiments" / "sweep.py"
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def _sweep(*args: str, timeout: float = 400) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SWEEP), *args], capture_output=True, text=True, timeout=timeout)
+
+
+def _read_csv(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="", encoding="utf-8") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture(scope="module")
+def ablation_dir(tmp_path_factory) -> tuple[Path, str]:
+    """Tiny ablation with rows A0 and TTA: killed (whole process group) once A0 is finished, then
+    rerun to completion. Returns the sweep folder and the rerun's output."""
+    out = tmp_path_factory.mktemp("sweep") / "ablation"
+    cmd = [sys.executable, str(SWEEP), "ablation", "--out", str(out), "--budget", "tiny", "--rows", "A0,TTA"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    first = out / "scores" / "A0_s0.json"
+    deadline = time.monotonic() + 300
+    try:
+        while not first.is_file():
+            if proc.poll() is not None:
+                pytest.fail(f"sweep ended before A0 finished:\n{proc.stdout.read()}")
+            if time.monotonic() > deadline:
+                pytest.fail("A0 did not finish within 300 s")
+            time.sleep(0.2)
+        time.sleep(1.0)  # let the next row's training start, so that the kill interrupts it
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=30)
+    killed_out = proc.stdout.read()
+    assert "A0 (z regression) seed 0: done" in killed_out
+    assert not (out / "scores" / "TTA_s0.json").exists()
+    mtime = first.stat().st_mtime_ns
+    res = _sweep("ablation", "--out", str(out), "--budget", "tiny", "--rows", "A0,TTA")
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert first.stat().st_mtime_ns == mtime  # the finished run was not redone
+    return out, res.stdout
+
+
+def test_ablation_resumes_and_writes_tables(ablation_dir):
+    out, log = ablation_dir
+    assert "[ablation 1/2] A0 (z regression) seed 0: skipped (finished earlier" in log
+    assert "[ablation 2/2] TTA (+ TTA (ours)) seed 0: done" in log
+    # the rows map to the intended training configs; TTA evaluates the A4 training with --tta
+    a0 = json.loads((out / "runs" / "A0_s0" / "config.json").read_text())
+    assert (a0["loss"]["z_mode"], a0["loss"]["z_loss"], a0["model"]["use_pe"]) == ("regression", "ce", False)
+    a4 = json.loads((out / "runs" / "A4_s0" / "config.json").read_text())
+    assert (a4["loss"]["z_mode"], a4["loss"]["z_loss"], a4["model"]["use_pe"], a4["model"]["rot_head"]) == (
+        "expectation", "focal", True, "so3")
+    assert a0["seed"] == a4["seed"] == 0 and a0["stream"]["obj_ids"] == [1, 2]
+    assert "--tta" in (out / "logs" / "TTA_s0.predict.log").read_text().splitlines()[0]
+    assert "--tta" not in (out / "logs" / "A0_s0.predict.log").read_text().splitlines()[0]
+    # tables agree with the scores JSONs
+    runs = _read_csv(out / "runs.csv")
+    assert [r["row"] for r in runs] == ["A0", "TTA"]
+    agg = {r["row"]: r for r in _read_csv(out / "ablation.csv")}
+    for r in runs:
+        sc = json.loads((out / "scores" / f"{r['row']}_s0.json").read_text())
+        assert float(r["AR"]) == pytest.approx(sc["bop19_average_recall"], abs=1e-4)
+        assert float(agg[r["row"]]["AR_mean"]) == pytest.approx(sc["bop19_average_recall"], abs=1e-4)
+        assert float(agg[r["row"]]["AR_std"]) == 0.0 and agg[r["row"]]["n_seeds"] == "1"
+        assert 0.0 <= sc["bop19_average_recall"] <= 1.0
+    md = (out / "ablation.md").read_text()
+    assert "| A0 | z regression | 0 |" in md and "| TTA | + TTA (ours) | 0 |" in md
+    assert (out / "ablation.png").read_bytes()[:8] == PNG
+    figs = sorted((out / "figures" / "A0_s0").glob("*.png"))
+    assert figs and all(p.read_bytes()[:8] == PNG for p in figs)
+
+
+def test_ablation_rerun_of_a_finished_sweep_redoes_nothing(ablation_dir):
+    out, _ = ablation_dir
+    before = {p: p.stat().st_mtime_ns for p in (out / "scores").glob("*.json")}
+    res = _sweep("ablation", "--out", str(out), "--budget", "tiny", "--rows", "A0,TTA", timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.count("skipped (finished earlier") == 2
+    assert {p: p.stat().st_mtime_ns for p in (out / "scores").glob("*.json")} == before
+
+
+def test_so3_samples_two_sizes(ablation_dir, tmp_path):
+    out, _ = ablation_dir
+    res = _sweep("so3-samples", "--run", str(out / "runs" / "A4_s0"), "--out", str(tmp_path / "so3"),
+                 "--sizes", "20000,60000", "--no-refine", "--no-figures", "--dataset", str(out / "dataset"))
+    assert res.returncode == 0, res.stdout + res.stderr
+    rows = _read_csv(tmp_path / "so3" / "so3_samples.csv")
+    assert [(r["library_size"], r["refine"]) for r in rows] == [("20000", "0"), ("60000", "0")]
+    for r in rows:
+        assert 0.0 <= float(r["AR"]) <= 1.0 and float(r["ms_per_crop"]) > 0
+    assert "| 60,000 | no |" in (tmp_path / "so3" / "so3_samples.md").read_text()
+    assert (tmp_path / "so3" / "so3_samples_ms.png").read_bytes()[:8] == PNG
+    # the library-size option reached the predictor
+    assert "--library-size 60000" in (tmp_path / "so3" / "logs" / "lib60000.predict.log").read_text()
+
+
+def test_eval_figures_writes_pngs(ablation_dir, tmp_path):
+    from sc6d_jax.metrics.cli import main
+
+    out, _ = ablation_dir
+    figs = tmp_path / "figs"
+    assert main(["--dataset", str(out / "dataset"), "--results", str(out / "results" / "A0_s0.csv"),
+                 "--out", str(tmp_path / "s.json"), "--no-progress", "--figures", str(figs),
+                 "--run", str(out / "runs" / "A0_s0")]) == 0
+    names = sorted(p.name for p in figs.iterdir())
+    assert "ar_per_object.png" in names
+    assert any(n.startswith("poses_") for n in names) and any(n.startswith("rotdist_") for n in names)
+    for p in figs.iterdir():
+        assert p.read_bytes()[:8] == PNG and p.stat().st_size > 1000
+    with pytest.raises(ValueError, match="only used with --figures"):
+        main(["--dataset", str(out / "dataset"), "--results", str(out / "results" / "A0_s0.csv"),
+              "--out", str(tmp_path / "s2.json"), "--run", str(out / "runs" / "A0_s0")])
+
+
+def test_sweep_argument_errors(tmp_path):
+    res = _sweep("ablation", "--out", str(tmp_path / "a"), "--rows", "A0,B7", timeout=60)
+    assert res.returncode == 2 and "unknown row(s) ['B7']" in res.stderr
+    res = _sweep("ablation", "--out", str(tmp_path / "a"), "--seeds", "0,x", timeout=60)
+    assert res.returncode == 2 and "--seeds must be comma-separated integers" in res.stderr
+    res = _sweep("so3-samples", "--run", str(tmp_path), "--out", str(tmp_path / "b"), timeout=60)
+    assert res.returncode == 2 and "not a training run directory" in res.stderr
+    (tmp_path / "c").mkdir()
+    (tmp_path / "c" / "sweep.json").write_text(json.dumps({"kind": "ablation", "budget": "full"}))
+    res = _sweep("ablation", "--out", str(tmp_path / "c"), "--budget", "tiny", timeout=60)
+    assert res.returncode == 2 and "budget='full'" in res.stderr
+
+
+# --------------------------------------------------------------------------- sc6d train --set
+def test_train_set_overrides_parse_with_field_types():
+    from sc6d_jax.train.cli import apply_overrides
+    from sc6d_jax.train.config import preset
+
+    cfg = apply_overrides(preset("tiny"), [
+        "loss.z_mode=regression", "model.use_pe=false", "model.rot_head=ipdf", "stream.occlusion=none",
+        "optim.lr=1e-3", "z_range=0.5,3", "steps=7", "stream.obj_ids=3,4,5",
+    ])
+    assert cfg.loss.z_mode == "regression" and cfg.model.use_pe is False and cfg.model.rot_head == "ipdf"
+    assert cfg.stream.occlusion is None and cfg.optim.lr == 1e-3 and cfg.z_range == (0.5, 3.0)
+    assert cfg.steps == 7 and cfg.stream.obj_ids == (3, 4, 5) and cfg.model.n_objects == 3
+    assert apply_overrides(cfg, []) is cfg
+
+
+@pytest.mark.parametrize(
+    "item, match",
+    [
+        ("loss.z_mod=regression", "unknown config key 'loss.z_mod'"),
+        ("lr=1", "unknown config key 'lr'"),
+        ("model=3", "unknown config key 'model'"),
+        ("loss.z_mode", "expects KEY=VALUE"),
+        ("model.use_pe=maybe", "model.use_pe=maybe: expected a boolean"),
+        ("steps=ten", "steps=ten: expected an integer"),
+        ("optim.lr=fast", "optim.lr=fast: expected a number"),
+        ("loss.z_mode=linear", "z_mode must be one of"),
+        ("z_range=1", "expected 2 comma-separated values"),
+        ("steps=0", "steps must be a positive integer"),
+    ],
+)
+def test_train_set_errors_name_the_problem(item, match, tmp_path):
+    from sc6d_jax.train.cli import main
+
+    with pytest.raises(ValueError, match=match):
+        main(["--models", str(tmp_path), "--out", str(tmp_path / "run"), "--preset", "tiny", "--set", item])
+    assert not (tmp_path / "run").exists()
