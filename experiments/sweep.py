@@ -50,12 +50,13 @@ class Budget:
     seeds: tuple[int, ...]
     checkpoint_every: int | None = None
     train_sets: tuple[str, ...] = ()
+    workers: int | None = None  # renderer processes of the training stream (None = sc6d train's default)
 
 
 BUDGETS: dict[str, Budget] = {
     "tiny": Budget(preset="tiny", steps=12, obj_ids=(1, 2), scenes=1, images_per_scene=2, objects_per_image=2,
                    library_size=20_000, so3_sizes=(20_000, 60_000), seeds=(0,), checkpoint_every=12,
-                   train_sets=("stream.occlusion=0.0",)),
+                   train_sets=("stream.occlusion=0.0",), workers=1),
     "full": Budget(preset="cpu", steps=None, obj_ids=None, scenes=4, images_per_scene=10, objects_per_image=5,
                    library_size=480_000, so3_sizes=(20_000, 60_000, 180_000, 480_000, 1_440_000), seeds=(0, 1, 2)),
 }
@@ -267,7 +268,9 @@ def summarize_ablation(out: Path, rows: Sequence[Row], seeds: Sequence[int], bud
 # --------------------------------------------------------------------------- ablation
 def _train_args(budget: Budget, models: Path, run_dir: Path, seed: int, sets: Sequence[str]) -> list[Any]:
     args: list[Any] = ["train", "--models", models, "--out", run_dir, "--preset", budget.preset, "--seed", seed,
-                       "--resume", "--no-progress", "--quiet", "--workers", 1]
+                       "--resume", "--no-progress", "--quiet"]
+    if budget.workers is not None:
+        args += ["--workers", budget.workers]
     if budget.steps is not None:
         args += ["--steps", budget.steps]
     if budget.checkpoint_every is not None:
