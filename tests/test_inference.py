@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -225,3 +226,29 @@ def test_predict_cli_image_mode(run_dir, scene, tmp_path, capsys):
     with pytest.raises(ValueError, match="obj-ids"):
         predict_main(["--run", str(run_dir), "--image", str(tmp_path / "im.png"), "--camera", str(tmp_path / "K.json"),
                       "--boxes", str(tmp_path / "boxes.json"), "--obj-ids", "1", "--library-size", "480"])
+
+
+def test_shipped_model_by_name(run_dir, est, scene, tmp_path, monkeypatch):
+    """A run shipped as a named model loads by name, predicts the same poses, and caches its
+    library in the user cache (never inside the package)."""
+    from sc6d_jax import pretrained
+
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path / "pretrained")
+    monkeypatch.setenv("SC6D_CACHE", str(tmp_path / "cache"))
+    shipped = pretrained.ship(run_dir, tmp_path / "pretrained" / "builtin", note="test")
+    assert pretrained.available() == ["builtin"]
+    assert sorted(p.name for p in shipped.iterdir()) == ["meta.json", "state.npz"]
+    named = Estimator.load("builtin", library_size=LIB, progress=False)
+    image, K, boxes, ids = scene
+    a, b = est.predict(image, K, boxes, ids), named.predict(image, K, boxes, ids)
+    for pa, pb in zip(a, b):
+        np.testing.assert_allclose(pa.R, pb.R, atol=1e-5)
+        np.testing.assert_allclose(pa.t, pb.t, rtol=1e-5)
+    assert list((tmp_path / "cache").glob("builtin-*/library/so3lib_*.npz"))
+    assert sorted(p.name for p in shipped.iterdir()) == ["meta.json", "state.npz"]
+    with pytest.raises(FileNotFoundError, match="no shipped model 'lmo'.*shipped: builtin"):
+        Estimator.load("lmo", library_size=LIB, progress=False)
+    # a path is still a path, even when a folder of that name exists here
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "lmo").mkdir()
+    assert pretrained.resolve("lmo") == (Path("lmo"), Path("lmo") / "library")

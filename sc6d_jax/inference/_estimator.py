@@ -109,11 +109,15 @@ class Estimator:
         progress: bool = True,
     ) -> Estimator:
         """Newest (or ``step``) checkpoint of a training run and its rotation library (cached in
-        ``RUN_DIR/library``, rebuilt when the model changed)."""
+        ``RUN_DIR/library``, rebuilt when the model changed).
+
+        ``run_dir`` may also name a shipped model (``"builtin"``, ``"lmo"``; see
+        :mod:`sc6d_jax.pretrained`); its library is cached in the user cache."""
+        from sc6d_jax.pretrained import resolve
         from sc6d_jax.train import load_checkpoint
         from sc6d_jax.train.checkpoint import checkpoint_dirs, read_meta
 
-        run_dir = Path(run_dir)
+        run_dir, cache_dir = resolve(run_dir)
         params, cfg = load_checkpoint(run_dir, step=step)
         models_dir = None
         found = dict(checkpoint_dirs(run_dir))
@@ -121,7 +125,7 @@ class Estimator:
             meta = read_meta(found[step if step is not None else max(found)])
             models_dir = meta.get("models_dir")
         lib = load_or_build_library(
-            params, cfg.model, library_size, cache_dir=(run_dir / "library") if cache else None, progress=progress
+            params, cfg.model, library_size, cache_dir=cache_dir if cache else None, progress=progress
         )
         return cls(params, cfg, lib, models_dir=models_dir)
 

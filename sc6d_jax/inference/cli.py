@@ -37,7 +37,8 @@ import numpy as np
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="sc6d predict", description=__doc__.split("\n\n")[0])
-    p.add_argument("--run", required=True, type=Path, help="training run directory")
+    p.add_argument("--run", required=True, type=Path,
+                   help="training run directory, or the name of a shipped model (builtin, lmo)")
     p.add_argument("--dataset", type=Path, default=None, help="BOP dataset folder (dataset mode)")
     p.add_argument("--split", default="test", help="dataset split folder (default: test)")
     p.add_argument("--out", type=Path, default=None, help="results CSV (dataset mode)")
