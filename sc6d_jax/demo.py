@@ -3,10 +3,11 @@
 1. writes the built-in object set (BOP ``models/``),
 2. renders a BOP test set with clutter and occlusion,
 3. runs the render-and-check (renderer vs geometry; a picture),
-4. with a trained model (``--run RUN_DIR``, or ``--train`` to train one with the ``cpu``
-   preset first): predicts every target from the ground-truth visible boxes, evaluates with
-   the BOP19 metrics, prints the AR table (overall, symmetric, asymmetric objects) and writes
-   overlay pictures of the estimated poses.
+4. with a model (the shipped ``builtin`` model by default, ``--run RUN_DIR`` for another, or
+   ``--train`` to train one with the ``cpu`` preset first): predicts every target from the
+   ground-truth visible boxes, evaluates with the BOP19 metrics, prints the AR table (overall,
+   symmetric, asymmetric objects) and writes pictures: overlays of the estimated poses,
+   rotation distributions on the sphere and AR per object.
 
 Everything goes under ``--out`` (default ``sc6d-demo/``).
 """
@@ -37,28 +38,32 @@ def _ar_groups(scores: dict, symmetric: set[int]) -> dict[str, float]:
     return out
 
 
-def write_overlays(dataset: Path, results: Path, run: Path | None, out_dir: Path, n_images: int = 4) -> list[Path]:
-    """Side-by-side pictures: rendered image | estimated poses per image (``sc6d_jax.viz.overlay_figures``)."""
-    from sc6d_jax.viz import overlay_figures
-
-    return overlay_figures(dataset, results, out_dir, n_images=n_images)
 
 
 def main(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(prog="sc6d demo", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("sc6d-demo"), help="output folder (default sc6d-demo/)")
-    ap.add_argument("--run", type=Path, default=None, help="trained run directory to evaluate")
+    ap.add_argument("--run", type=Path, default=None,
+                    help="run directory or shipped model name to evaluate (default: the shipped builtin model)")
+    ap.add_argument("--no-model", action="store_true", help="stop after rendering and the render-and-check")
     ap.add_argument("--train", action="store_true", help="train the cpu preset first (about an hour on 2 cores)")
     ap.add_argument("--steps", type=int, default=None, help="training steps with --train (preset's by default)")
     ap.add_argument("--scenes", type=int, default=2)
     ap.add_argument("--images-per-scene", type=int, default=6)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--tta", action="store_true", help="test-time augmentation when predicting")
+    ap.add_argument("--library-size", type=int, default=480_000, help="rotation library size (20000..1440000)")
     a = ap.parse_args(argv)
     if a.run is not None and a.train:
         raise ValueError("give either --run (an existing model) or --train (train one), not both")
-    if a.run is not None and not (a.run / "config.json").is_file():
-        raise FileNotFoundError(f"{a.run / 'config.json'}: not a training run directory")
+    from sc6d_jax import pretrained
+
+    if a.run is None and not a.train and not a.no_model and "builtin" in pretrained.available():
+        a.run = Path("builtin")
+    if a.run is not None:
+        ckpt, _ = pretrained.resolve(a.run)  # a shipped name, or a path
+        if not ((ckpt / "config.json").is_file() or (ckpt / "meta.json").is_file()):
+            raise FileNotFoundError(f"{ckpt}: not a training run directory (no config.json)")
     from sc6d_jax.check import main as check_main
     from sc6d_jax.objects import SYMMETRIC_IDS, write_models
     from sc6d_jax.render._dataset import DatasetSpec, render_dataset
@@ -87,7 +92,7 @@ def main(argv: list[str]) -> int:
         overrides = {} if a.steps is None else {"steps": a.steps}
         train(preset("cpu", **overrides), models, run, resume=(run / "checkpoints").is_dir())
     if run is None:
-        _step("no model given")
+        _step("no model")
         print("Pass --run RUN_DIR to evaluate a trained model, or --train to train the cpu preset here.\n"
               f"Pictures: {out / 'check.png'}; dataset: {dataset}")
         print(f"\ndone in {time.perf_counter() - t0:.0f} s")
@@ -97,14 +102,18 @@ def main(argv: list[str]) -> int:
 
     results = out / "sc6d_builtin-test.csv"
     _step(f"predicting every target (ground-truth visible boxes) -> {results}")
-    predict_main(["--run", str(run), "--dataset", str(dataset), "--out", str(results)] + (["--tta"] if a.tta else []))
+    predict_main(["--run", str(run), "--dataset", str(dataset), "--out", str(results),
+                  "--library-size", str(a.library_size)] + (["--tta"] if a.tta else []))
     _step("BOP19 evaluation")
     eval_main(["--dataset", str(dataset), "--results", str(results), "--out", str(out / "scores.json")])
     scores = json.loads((out / "scores.json").read_text())
     groups = _ar_groups(scores, set(SYMMETRIC_IDS))
     print(f"\nAR symmetric objects: {groups['symmetric']:.3f}   AR asymmetric objects: {groups['asymmetric']:.3f}")
-    pics = write_overlays(dataset, results, run, out / "overlays")
-    print(f"overlays: {', '.join(str(p) for p in pics)}")
+    from sc6d_jax.viz import write_eval_figures
+
+    _step(f"pictures -> {out / 'figures'}")
+    pics = write_eval_figures(dataset, results, out / "figures", run=run, scores=scores)
+    print("\n".join(f"  {p}" for p in pics))
     print(f"\ndone in {time.perf_counter() - t0:.0f} s")
     return 0
 

@@ -11,7 +11,7 @@ from sc6d_jax.demo import _ar_groups, main
 
 def test_demo_without_model(tmp_path, capsys):
     out = tmp_path / "demo"
-    assert main(["--out", str(out), "--scenes", "1", "--images-per-scene", "2"]) == 0
+    assert main(["--out", str(out), "--scenes", "1", "--images-per-scene", "2", "--no-model"]) == 0
     assert (out / "models" / "models_info.json").is_file()
     assert (out / "dataset" / "test_targets_bop19.json").is_file()
     assert (out / "check.png").read_bytes()[:4] == b"\x89PNG"
