@@ -540,7 +540,7 @@ def experiment(args: argparse.Namespace) -> int:
 
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
-    signal.signal(signal.SIGTERM, _on_term)
+    previous = signal.signal(signal.SIGTERM, _on_term)  # a kill ends the running sc6d child too
     try:
         return experiment(args)
     except (ValueError, FileNotFoundError, StageFailed) as exc:
@@ -549,6 +549,8 @@ def main(argv: list[str]) -> int:
     except KeyboardInterrupt:
         print("lmo.py: interrupted; rerun the same command to resume", file=sys.stderr)
         return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":
