@@ -16,7 +16,7 @@ def _unit(x):
     return x / np.linalg.norm(x, axis=-1, keepdims=True)
 
 
-@pytest.mark.parametrize("n,block,k", [(1000, 128, 1), (1000, 300, 5), (777, 4096, 3), (50, 7, 50)])
+@pytest.mark.parametrize("n,block,k", [(1000, 128, 1), (1000, 300, 5), (777, 4096, 3), (50, 7, 50), (5000, 1024, 1), (2900, 512, 1)])
 def test_blocked_matches_dense(n, block, k):
     rng = np.random.default_rng(n + k)
     lib = _unit(rng.normal(size=(n, 16))).astype(np.float32)
@@ -27,6 +27,27 @@ def test_blocked_matches_dense(n, block, k):
     np.testing.assert_allclose(np.asarray(got.score), np.asarray(ref.score), rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(np.asarray(got.prob), np.asarray(ref.prob), rtol=1e-4, atol=1e-7)
     assert np.all(np.diff(np.asarray(got.score), axis=1) <= 0)  # best first
+
+
+@pytest.mark.parametrize("k", [1, 4])
+def test_per_object_libraries_match_each_query_against_its_own(k):
+    """(O, nb, E, block) libraries: a query sees only its object's library; objects absent from
+    the batch are skipped; results equal the dense reference per object."""
+    from sc6d_jax.inference import match_blocks, pad_library
+
+    rng = np.random.default_rng(k)
+    n_obj, n = 4, 1800
+    libs = _unit(rng.normal(size=(n_obj, n, 16))).astype(np.float32)
+    q = _unit(rng.normal(size=(7, 16))).astype(np.float32)
+    obj = np.array([2, 0, 2, 3, 0, 0, 2], np.int32)  # object 1 absent
+    blocks, nv = pad_library(libs, 512)
+    assert blocks.shape == (n_obj, 4, 16, 512) and nv == n
+    got = match_blocks(q, blocks, n_valid=nv, k=k, tau=0.1, obj_idx=obj)
+    for i, o in enumerate(obj):
+        ref = match_dense(q[i : i + 1], libs[o], k=k, tau=0.1)
+        np.testing.assert_array_equal(np.asarray(got.index[i]), np.asarray(ref.index[0]))
+        np.testing.assert_allclose(np.asarray(got.score[i]), np.asarray(ref.score[0]), rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(got.prob[i]), np.asarray(ref.prob[0]), rtol=1e-4, atol=1e-7)
 
 
 def test_probabilities_sum_to_one_over_library():

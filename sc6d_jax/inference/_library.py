@@ -151,22 +151,12 @@ def load_or_build_library(
     return RotationLibrary(R=R, emb=emb, grid=grid, key=key)
 
 
-def pack_library(emb: np.ndarray, block: int) -> tuple[np.ndarray, int]:
-    """Pack per-object embeddings ``(O, N, E)`` into blocks ``(nb, block, O*E)`` (zero-padded rows).
+def pack_library(emb: np.ndarray, block: int) -> tuple[jax.Array, int]:
+    """Per-object embeddings ``(O, N, E)`` -> transposed blocks ``(O, nb, E, block)`` (zero-padded
+    rows) and N: each query is matched against its own object's library only
+    (:func:`sc6d_jax.inference.match_blocks` with ``obj_idx``)."""
+    from sc6d_jax.inference._matching import pad_library
 
-    Row n holds the O objects' embeddings side by side; a query of object o is expanded to
-    ``O*E`` values with zeros outside slot o, so one matrix product scores every query against
-    its own object's library (see :func:`expand_queries`).
-    """
-    o, n, e = emb.shape
-    block = int(min(block, n))
-    nb = -(-n // block)
-    packed = np.zeros((nb * block, o * e), np.float32)
-    packed[:n] = np.transpose(emb, (1, 0, 2)).reshape(n, o * e)
-    return packed.reshape(nb, block, o * e), n
-
-
-def expand_queries(q: jax.Array, obj_idx: jax.Array, n_objects: int) -> jax.Array:
-    """``(B, E)`` queries -> ``(B, O*E)`` with each query in its object's slot (see pack_library)."""
-    onehot = jax.nn.one_hot(obj_idx, n_objects, dtype=q.dtype)  # (B, O)
-    return (onehot[:, :, None] * q[:, None, :]).reshape(q.shape[0], n_objects * q.shape[1])
+    if np.ndim(emb) != 3:
+        raise ValueError(f"library embeddings must be (O, N, E), got shape {np.shape(emb)}")
+    return pad_library(emb, block)

@@ -1,13 +1,20 @@
 """Matching crop embeddings against a rotation library, block by block.
 
-A library of N unit embeddings (N x E, float32; 480,000 x 32 by default) is scanned in blocks of
-``block`` rows. Each step multiplies the queries by one block, keeps a running top-k (value and
-index) and a running log-sum-exp of score / tau, so no more than one block of scores (B x block)
-is ever materialised, whatever N. The probabilities are the softmax over the whole library of
-cosine / tau, the same distribution InfoNCE trained.
+A library of N unit embeddings (N x E, float32; 480,000 x 32 by default) is stored transposed in
+blocks, ``(nb, E, block)``, so each step of the scan is a plain ``(B, E) @ (E, block)`` product.
+A running top-k (value and index) and a running sum of ``exp((score - |q|) / tau)`` are kept,
+so no more than one block of scores (B x block) is ever materialised, whatever N. The
+probabilities are the softmax over the whole library of cosine / tau, the same distribution
+InfoNCE trained. The fixed shift ``|q|`` (Cauchy-Schwarz: no library row has norm above 1)
+replaces a running maximum: one fused pass over each block, no overflow.
 
-For k = 1 the running top-k is a max / argmax pair (two-stage argmax: per-block maxima, then
-the best block), which is what makes it about as fast as a plain matrix product.
+For k = 1 the scan keeps only the maximum of every sub-block of 256 rows per query (a cheap
+reduction, no index bookkeeping); the argmax is then searched again inside each query's best
+sub-block only (256 rows, gathered per query).
+
+Several objects: ``blocks`` may be ``(O, nb, E, block)``, one library per object; each query
+is matched against its own object's library only, and an object with no query in the batch
+costs nothing (a ``lax.cond`` skips it).
 """
 
 from __future__ import annotations
@@ -19,6 +26,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+SUB_BLOCK = 256  # rows per sub-block of the k = 1 search
+
 
 class MatchResult(NamedTuple):
     index: jax.Array  # (B, k) int32 library rows, best first
@@ -27,88 +36,114 @@ class MatchResult(NamedTuple):
 
 
 def pad_library(library: np.ndarray | jax.Array, block: int) -> tuple[jax.Array, int]:
-    """Pad N to a multiple of ``block`` with zero rows; returns (padded (nb, block, E), N)."""
+    """Zero-pad N to a multiple of ``block`` and transpose: ``(nb, E, block)`` and N.
+
+    A ``(O, N, E)`` stack of per-object libraries gives ``(O, nb, E, block)``."""
     lib = jnp.asarray(library)
-    if lib.ndim != 2:
-        raise ValueError(f"library must be (N, E), got shape {lib.shape}")
-    n, e = lib.shape
+    if lib.ndim not in (2, 3):
+        raise ValueError(f"library must be (N, E) or (O, N, E), got shape {lib.shape}")
+    n, e = lib.shape[-2:]
     block = int(min(block, max(n, 1)))
     nb = -(-n // block)
     pad = nb * block - n
     if pad:
-        lib = jnp.concatenate([lib, jnp.zeros((pad, e), lib.dtype)], axis=0)
-    return lib.reshape(nb, block, e), n
+        lib = jnp.concatenate([lib, jnp.zeros(lib.shape[:-2] + (pad, e), lib.dtype)], axis=-2)
+    lib = lib.reshape(lib.shape[:-2] + (nb, block, e))
+    return jnp.swapaxes(lib, -1, -2), n
 
 
 def auto_block(batch: int, n: int) -> int:
-    """Block rows for a batch of ``batch`` queries: about 128k scores per block (L2-sized),
-    between 2,048 and 32,768 rows, a power of two (measured best on 2 CPU cores)."""
-    target = 131072 // max(int(batch), 1)
+    """Block rows for a batch of ``batch`` queries: about 256k scores per block (L2-sized),
+    between 2,048 and 32,768 rows, a power of two (measured on 2 CPU cores)."""
+    target = 262144 // max(int(batch), 1)
     bs = 1 << max(int(np.floor(np.log2(max(target, 1)))), 0)
     return int(min(max(bs, 2048), 32768, max(n, 1)))
 
 
 @functools.partial(jax.jit, static_argnames=("k", "n_valid", "with_prob"))
 def match_blocks(
-    queries: jax.Array, blocks: jax.Array, n_valid: int, k: int = 1, tau: float = 0.1, with_prob: bool = True
+    queries: jax.Array, blocks: jax.Array, n_valid: int, k: int = 1, tau: float = 0.1, with_prob: bool = True,
+    obj_idx: jax.Array | None = None,
 ) -> MatchResult:
-    """Top-k library rows for each query. ``blocks`` is (nb, block, E) from :func:`pad_library`.
-
-    k = 1 uses a two-stage argmax: the scan keeps only each block's maximum per query (a cheap
-    reduction, no index bookkeeping), then the argmax is searched again inside each query's best
-    block only. k > 1 keeps a running top-k.
-    """
-    return _match_blocks(queries, blocks, n_valid, k, tau, with_prob)
+    """Top-k library rows for each query. ``blocks`` is ``(nb, E, block)`` from
+    :func:`pad_library`, or ``(O, nb, E, block)`` with ``obj_idx`` (B,) naming each query's
+    library."""
+    return _match_blocks(queries, blocks, n_valid, k, tau, with_prob, obj_idx)
 
 
-def _match_blocks(queries, blocks, n_valid: int, k: int, tau, with_prob: bool) -> MatchResult:
+def _match_blocks(queries, blocks, n_valid: int, k: int, tau, with_prob: bool, obj_idx=None) -> MatchResult:
     """Traceable body of :func:`match_blocks` (for use inside other jitted functions)."""
-    nb, bs, _ = blocks.shape
+    if blocks.ndim == 3:
+        return _match_one(queries, blocks[None], jnp.int32(0), n_valid, k, tau, with_prob)
+    n_obj, b = blocks.shape[0], queries.shape[0]
+    if obj_idx is None:
+        raise ValueError("per-object blocks (O, nb, E, block) need obj_idx")
+    obj_idx = jnp.asarray(obj_idx, jnp.int32)
+    if n_obj == 1:
+        return _match_one(queries, blocks, jnp.int32(0), n_valid, k, tau, with_prob)
+    empty = MatchResult(jnp.zeros((b, k), jnp.int32), jnp.zeros((b, k), jnp.float32), jnp.zeros((b, k), jnp.float32))
+    out = empty
+    for o in range(n_obj):  # static: each object's library is scanned only when a query needs it
+        mine = obj_idx == o
+        r = jax.lax.cond(
+            jnp.any(mine),
+            lambda: _match_one(queries, blocks, jnp.int32(o), n_valid, k, tau, with_prob),
+            lambda: empty,
+        )
+        out = jax.tree.map(lambda a, c: jnp.where(mine[:, None], c, a), out, r)
+    return out
+
+
+def _match_one(queries, blocks, o, n_valid: int, k: int, tau, with_prob: bool) -> MatchResult:
+    """Match every query against library ``o`` of ``blocks`` (O, nb, E, bs)."""
+    _, nb, _, bs = blocks.shape
     b = queries.shape[0]
     q = queries.astype(blocks.dtype)
     inv_tau = jnp.asarray(1.0 / tau, jnp.float32)
+    shift = jnp.linalg.norm(q.astype(jnp.float32), axis=1)  # >= every score (unit library rows)
     neg = jnp.float32(-jnp.inf)
     ragged = nb * bs != n_valid
+    sub = SUB_BLOCK if bs % SUB_BLOCK == 0 else bs
+    ns = bs // sub
 
-    def scores(blk, j):
-        s = jnp.dot(q, blk.T, preferred_element_type=jnp.float32)  # (B, bs): the only block alive
+    def block(j):
+        return jax.lax.dynamic_index_in_dim(jax.lax.dynamic_index_in_dim(blocks, o, 0, False), j, 0, False)
+
+    def scores(j):
+        s = jnp.dot(q, block(j), preferred_element_type=jnp.float32)  # (B, bs): the only block alive
         if ragged:
-            row = j * bs + jnp.arange(bs, dtype=jnp.int32)
-            s = jnp.where(row[None, :] < n_valid, s, neg)
+            s = jnp.where(jnp.arange(bs, dtype=jnp.int32)[None, :] < n_valid - j * bs, s, neg)
         return s
 
-    def body(carry, xs):
-        best_v, best_i, lse = carry
-        blk, j = xs
-        s = scores(blk, j)
+    def body(carry, j):
+        best_v, best_i, z = carry
+        s = scores(j)
         if with_prob:
-            lse = jnp.logaddexp(lse, jax.nn.logsumexp(s * inv_tau, axis=1))
+            z = z + jnp.sum(jnp.exp((s - shift[:, None]) * inv_tau), axis=1)
         if k == 1:
-            return (best_v, best_i, lse), jnp.max(s, axis=1)
+            return (best_v, best_i, z), jnp.max(s.reshape(b, ns, sub), axis=2)
         v, i = jax.lax.top_k(s, min(k, bs))
         allv = jnp.concatenate([best_v, v], axis=1)
         alli = jnp.concatenate([best_i, (j * bs + i).astype(jnp.int32)], axis=1)
         best_v, sel = jax.lax.top_k(allv, k)
         best_i = jnp.take_along_axis(alli, sel, axis=1)
-        return (best_v, best_i, lse), None
+        return (best_v, best_i, z), None
 
-    init = (
-        jnp.full((b, k), neg, jnp.float32),
-        jnp.zeros((b, k), jnp.int32),
-        jnp.full((b,), neg, jnp.float32),
-    )
-    (v, i, lse), block_max = jax.lax.scan(body, init, (blocks, jnp.arange(nb, dtype=jnp.int32)))
+    init = (jnp.full((b, k), neg, jnp.float32), jnp.zeros((b, k), jnp.int32), jnp.zeros((b,), jnp.float32))
+    (v, i, z), sub_max = jax.lax.scan(body, init, jnp.arange(nb, dtype=jnp.int32))
     if k == 1:
-        # stage 2: argmax inside each query's best block
-        jb = jnp.argmax(block_max, axis=0).astype(jnp.int32)  # (B,)
-        blk = blocks[jb]  # (B, bs, E)
-        s = jnp.einsum("be,bke->bk", q, blk, preferred_element_type=jnp.float32)
-        row = jb[:, None] * bs + jnp.arange(bs, dtype=jnp.int32)[None, :]
+        # stage 2: argmax inside each query's best sub-block of `sub` rows
+        js = jnp.argmax(jnp.transpose(sub_max, (1, 0, 2)).reshape(b, nb * ns), axis=1).astype(jnp.int32)
+        jb, off = js // ns, (js % ns) * sub
+        cols = jax.vmap(lambda j, c: jax.lax.dynamic_slice_in_dim(block(j), c, sub, axis=1))(jb, off)  # (B,E,sub)
+        s = jnp.einsum("be,bek->bk", q, cols, preferred_element_type=jnp.float32)
+        row = (jb * bs + off)[:, None] + jnp.arange(sub, dtype=jnp.int32)[None, :]
         s = jnp.where(row < n_valid, s, neg)
         ii = jnp.argmax(s, axis=1).astype(jnp.int32)
         v = jnp.take_along_axis(s, ii[:, None], axis=1)
-        i = (jb * bs + ii)[:, None]
-    return MatchResult(index=i, score=v, prob=jnp.exp(v * inv_tau - lse[:, None]))
+        i = row[jnp.arange(b), ii][:, None]
+    prob = jnp.exp((v - shift[:, None]) * inv_tau) / z[:, None] if with_prob else jnp.full_like(v, jnp.nan)
+    return MatchResult(index=i, score=v, prob=prob)
 
 
 def match(queries, library, k: int = 1, tau: float = 0.1, block: int | None = None) -> MatchResult:
@@ -118,9 +153,11 @@ def match(queries, library, k: int = 1, tau: float = 0.1, block: int | None = No
         raise ValueError(f"queries must be (B, E), got shape {queries.shape}")
     if block is None:
         block = auto_block(queries.shape[0], int(np.shape(library)[0]))
+    if np.ndim(library) != 2:
+        raise ValueError(f"library must be (N, E), got shape {np.shape(library)}")
     blocks, n = pad_library(library, block)
-    if queries.shape[1] != blocks.shape[2]:
-        raise ValueError(f"query dimension {queries.shape[1]} != library dimension {blocks.shape[2]}")
+    if queries.shape[1] != blocks.shape[-2]:
+        raise ValueError(f"query dimension {queries.shape[1]} != library dimension {blocks.shape[-2]}")
     if not 1 <= k <= n:
         raise ValueError(f"k must be in [1, {n}], got {k}")
     return match_blocks(queries, blocks, n_valid=n, k=k, tau=tau)

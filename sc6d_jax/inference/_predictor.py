@@ -22,7 +22,6 @@ import jax
 import jax.numpy as jnp
 
 from sc6d_jax.geometry import allocentric_to_egocentric, crop_transform, decode_translation, pe_map
-from sc6d_jax.inference._library import expand_queries
 from sc6d_jax.inference._matching import _match_blocks
 from sc6d_jax.inference._refine import refine_rotations
 
@@ -75,7 +74,7 @@ def predict_crops(
 
     Args:
         params: model parameters.
-        lib_blocks: packed library ``(nb, block, O*E)`` (:func:`pack_library`); lib_R ``(N,3,3)``.
+        lib_blocks: per-object library blocks ``(O, nb, E, block)`` (:func:`pack_library`); lib_R ``(N,3,3)``.
         rgb: uint8 crops ``(B,S,S,3)`` warped with ``T = crop_transform(center, side, S)``.
         K: ``(B,3,3)`` image intrinsics; center ``(B,2)``, side ``(B,)``: the crop boxes.
         obj_idx: ``(B,)`` object index of the model.
@@ -107,8 +106,7 @@ def predict_crops(
     emb = out["rot_emb"].astype(f32)
     dz = _z_decode(out, z_mode, z_range).astype(f32).reshape(n_copies, B)
     dxy = out["delta_xy"].astype(f32).reshape(n_copies, B, 2)
-    q = expand_queries(emb, obj_in, mcfg.n_objects)
-    m = _match_blocks(q, lib_blocks, n_valid, top_k, tau, True)
+    m = _match_blocks(emb, lib_blocks, n_valid, top_k, tau, True, obj_in)
     idx = m.index.reshape(n_copies, B, top_k)
     score = m.score.reshape(n_copies, B, top_k)
     prob = m.prob.reshape(n_copies, B, top_k)
