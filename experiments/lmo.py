@@ -407,7 +407,7 @@ def _f(v: Any, nd: int = 3) -> str:
 
 def build_report(scores: dict[str, Any], run: RunInfo, all_obj_ids: Sequence[int], published: list[dict[str, Any]],
                  published_note: str, train_wall_s: float | None, ms_image: float, budget_name: str | None,
-                 commands: Sequence[str]) -> tuple[str, str]:
+                 commands: Sequence[str], wall_note: str = "") -> tuple[str, str]:
     """``(markdown, csv)`` of the LM-O comparison."""
     trained = list(run.obj_ids) if run.obj_ids else list(all_obj_ids)
     mssd, mspd = scores["bop19_average_recall_mssd"], scores["bop19_average_recall_mspd"]
@@ -447,7 +447,7 @@ def build_report(scores: dict[str, Any], run: RunInfo, all_obj_ids: Sequence[int
         f"backgrounds and occluders), never on real images; {run.steps} training steps"
         + (f" (preset {run.preset})" if run.preset else "") + "; poses from the ground-truth visible boxes "
         "(no detector); no refinement. ms/image: median time per image on this machine's CPU (2 cores, "
-        "shared), first image (compilation) left out.",
+        "shared), first image (compilation) left out." + (f" Training wall time: {wall_note}." if wall_note else ""),
         "",
         "| method | AR_MSSD | AR_MSPD | AR (MSSD+MSPD)/2 | AR incl. VSD | objects | targets | training data | "
         "boxes | steps | training wall time | ms/image | source |",
@@ -515,11 +515,14 @@ def experiment(args: argparse.Namespace) -> int:
         run = run_info(args.run)
         _say(f"[1/4] train: skipped (--run {args.run}: {run.steps} steps)")
         wall = loop_seconds(run.path) if run.is_training_run else None
+        wall_note = ("the training loop's elapsed_s in the run's metrics.jsonl, summed over resumed segments"
+                     if wall is not None else "")
         budget_label = None
     else:
         run_dir, wall = train_stage(out, data, args.budget, args.steps)
         run = run_info(run_dir)
         budget_label = args.budget
+        wall_note = "the `sc6d train` processes of this experiment, start-up and compilation included"
     results = predict_stage(out, data, run, budget.library_size)
     scores = eval_stage(out, data, results, run)
     ms = ms_per_image(results)
@@ -529,7 +532,8 @@ def experiment(args: argparse.Namespace) -> int:
         log = out / "logs" / f"{stage}.log"
         if log.is_file() and (stage != "train" or args.run is None):
             commands.append(log.read_text(encoding="utf-8").splitlines()[0].removeprefix("$ "))
-    md, csv_text = build_report(scores, run, all_obj_ids, published, note, wall, ms, budget_label, commands)
+    md, csv_text = build_report(scores, run, all_obj_ids, published, note, wall, ms, budget_label, commands,
+                               wall_note)
     atomic_write_text(out / "lmo.md", md)
     atomic_write_text(out / "lmo.csv", csv_text)
     _say("[4/4] report: " + str(out / "lmo.md") + ", " + str(out / "lmo.csv"))
