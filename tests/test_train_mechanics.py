@@ -441,3 +441,27 @@ def test_two_processes_with_jax_distributed(tmp_path):
 
 if __name__ == "__main__":
     sys.exit(_script_main(sys.argv[1:]))
+
+
+def test_stream_settings_reach_the_stream(tmp_path):
+    """occlusion, curriculum and distance of StreamSettings are passed to the crop stream's config."""
+    from sc6d_jax.train import DataFns, StreamSettings, train
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def stream_config(**kw):
+        seen.update(kw)
+        raise Stop
+
+    mf, _ = standin_fns()
+    stream = StreamSettings(batch_size=8, occlusion=0.25, curriculum=7, distance=(3, 12))
+    assert stream.distance == (3.0, 12.0)
+    with pytest.raises(Stop):
+        train(standin_config(2, stream=stream), tmp_path, tmp_path / "run", progress=False, verbose=False,
+              model_fns=mf, data_fns=DataFns(stream_config, StandinStream, lambda cfg: (0.1, 1.0)))
+    assert (seen["occlusion"], seen["curriculum"], seen["distance"]) == (0.25, 7, (3.0, 12.0))
+    with pytest.raises(ValueError, match="stream.distance"):
+        StreamSettings(distance=(5, 2))

@@ -58,6 +58,8 @@ class StreamSettings:
             stream's default).
         curriculum: steps over which backgrounds and occlusion ramp from plain/none to the
             full setting (``sc6d_jax.data.StreamConfig.curriculum``; 0 = full from the start).
+        distance: camera distance range in object diameters (``None`` = the stream's default,
+            2.5 to 9); widen it when test objects sit farther away.
     """
 
     batch_size: int = 32
@@ -65,6 +67,7 @@ class StreamSettings:
     augment: bool = True
     occlusion: float | None = None
     curriculum: int = 0
+    distance: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.batch_size, int) or self.batch_size < 1:
@@ -80,6 +83,11 @@ class StreamSettings:
             raise ValueError(f"stream.occlusion must be in [0, 1] or None, got {self.occlusion!r}")
         if not isinstance(self.curriculum, int) or self.curriculum < 0:
             raise ValueError(f"stream.curriculum must be a non-negative integer, got {self.curriculum!r}")
+        if self.distance is not None:
+            d = tuple(float(x) for x in self.distance)
+            if len(d) != 2 or not 0.0 < d[0] < d[1]:
+                raise ValueError(f"stream.distance must be (near, far) diameters with 0 < near < far, got {self.distance!r}")
+            object.__setattr__(self, "distance", d)
 
 
 @dataclass(frozen=True)
@@ -302,9 +310,9 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
                 per_object_decoder=False,
             ),
             loss=LossConfig(n_negatives=5000, rebase_negatives=False),
-            stream=StreamSettings(batch_size=32, curriculum=6000),
-            optim=OptimConfig(lr=5e-4, lr_end=1e-5, weight_decay=1e-4, warmup_steps=200),
-            steps=18_000,
+            stream=StreamSettings(batch_size=32, curriculum=4000),
+            optim=OptimConfig(lr=1e-3, lr_end=1e-5, weight_decay=1e-4, warmup_steps=200),
+            steps=14_000,
             checkpoint_every=500,
             log_every=20,
         )

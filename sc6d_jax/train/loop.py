@@ -324,6 +324,8 @@ def train(
         common["occlusion"] = cfg.stream.occlusion
     if cfg.stream.curriculum:
         common["curriculum"] = cfg.stream.curriculum
+    if cfg.stream.distance is not None:
+        common["distance"] = cfg.stream.distance
     scfg = data_fns.stream_config(batch_size=local_bs, seed=_process_seed(cfg.seed, pidx, pcount), **common)
     stream = data_fns.stream(scfg, start)
     try:
