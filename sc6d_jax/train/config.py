@@ -299,10 +299,14 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # tiny) and ran the train step faster too (0.30 vs 0.38 s for cpu, 0.08 vs 0.12 s tiny).
         # One shared U-Net decoder (with a per-object embedding): with one decoder per object
         # the step cost grows with the number of objects (0.55 steps/s for the 14 built-in
-        # objects against ~6 for one).  A curriculum over the first third of the run (plain
+        # objects against ~6 for one).  A curriculum over the first 4,000 steps (plain
         # backgrounds and no occluders at first, ramping to the full stream): on the 14 built-in
         # objects, without it the rotation loss stayed at ln(Q+1) for 2,300 steps; with it the
         # offset error fell by 40 % and the rotation loss started falling within 1,800 steps.
+        # 14,000 steps: about an hour on 2 cores (4 steps/s with one renderer worker).  The
+        # rotation loss falls about as fast per crop *of one object* as with a single object
+        # (measured: 14 objects learn ~14x slower per step), so an hour is ~1,000 steps' worth
+        # of each object; lr 1e-3 and 2e-3 learned no faster than 5e-4 there.
         cfg = TrainConfig(
             model=ModelConfig(
                 n_objects=1, crop_size=64, backbone="tiny", width=16, decoder_width=32, feat_dim=32,
