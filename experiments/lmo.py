@@ -55,11 +55,14 @@ class Budget:
     obj_ids: tuple[int, ...] | None  # None = every model in DATA/models
     library_size: int | None  # None = sc6d predict's default (480k)
     checkpoint_every: int | None = None
+    overrides: tuple[str, ...] = ()  # sc6d train --set KEY=VALUE
 
 
 BUDGETS: dict[str, Budget] = {
     "tiny": Budget(preset="tiny", steps=12, obj_ids=(8, 10), library_size=20_000, checkpoint_every=12),
-    "full": Budget(preset="cpu", steps=None, obj_ids=None, library_size=None),
+    # LM-O's test objects sit 3 to 11 diameters from the camera (the stream's default is 2.5-9)
+    "full": Budget(preset="cpu", steps=None, obj_ids=None, library_size=None,
+                   overrides=("stream.distance=2.5,12",)),
 }
 
 
@@ -233,6 +236,8 @@ def train_stage(out: Path, data: Path, budget_name: str, steps: int | None) -> t
         args += ["--checkpoint-every", min(budget.checkpoint_every, target or budget.checkpoint_every)]
     if budget.obj_ids:
         args += ["--obj-ids", ",".join(map(str, budget.obj_ids))]
+    for item in budget.overrides:
+        args += ["--set", item]
     objs = ",".join(map(str, budget.obj_ids)) if budget.obj_ids else "all 8"
     resumed = (run_dir / "checkpoints").is_dir()
     _say(f"[1/4] train: preset {budget.preset}, {target or 'preset'} steps, objects {objs} -> {run_dir}"
