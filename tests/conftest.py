@@ -20,3 +20,13 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared data folder not found at ../shared/data (expected {SHARED_DATA})")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def models(tmp_path_factory) -> Path:
+    """The built-in objects as a BOP models/ folder, written once per test session (read-only use)."""
+    from sc6d_jax.objects import write_models
+
+    out = tmp_path_factory.mktemp("builtin") / "models"
+    write_models(out)
+    return out

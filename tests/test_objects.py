@@ -11,12 +11,6 @@ from sc6d_jax.objects import ASYMMETRIC_IDS, SYMMETRIC_IDS, builtin_objects, wri
 from sc6d_jax.objects.cli import main
 
 
-@pytest.fixture(scope="module")
-def models(tmp_path_factory):
-    out = tmp_path_factory.mktemp("o") / "models"
-    write_models(out)
-    return out
-
 
 def test_models_folder_is_bop(models):
     infos = bop.load_models_info(models)

@@ -10,7 +10,6 @@ import pytest
 import trimesh
 
 from sc6d_jax import bop
-from sc6d_jax.objects import write_models
 from sc6d_jax.render import Light, Primitive, Renderer, load_mesh, prepare_mesh, render_depth
 from sc6d_jax.render._dataset import DatasetSpec, render_dataset
 
@@ -21,12 +20,6 @@ def _coloured(mesh, rgb=(200, 100, 50)):
     mesh.visual.face_colors = np.array([*rgb, 255], np.uint8)
     return mesh
 
-
-@pytest.fixture(scope="module")
-def models(tmp_path_factory):
-    out = tmp_path_factory.mktemp("r") / "models"
-    write_models(out)
-    return out
 
 
 def test_sphere_centre_projects_to_K_t():

@@ -7,14 +7,7 @@ import pytest
 
 from sc6d_jax import geometry as G
 from sc6d_jax.data import CropStream, StreamConfig, delta_z_range
-from sc6d_jax.objects import write_models
 
-
-@pytest.fixture(scope="module")
-def models(tmp_path_factory):
-    out = tmp_path_factory.mktemp("s") / "models"
-    write_models(out)
-    return out
 
 
 def test_batch_fields_and_labels(models):

@@ -30,12 +30,8 @@ ASYM_OBJ = 1
 
 
 @pytest.fixture(scope="module")
-def models_dir(tmp_path_factory) -> Path:
-    from sc6d_jax import objects
-
-    out = tmp_path_factory.mktemp("objects") / "models"
-    objects.write_models(out)
-    return out
+def models_dir(models) -> Path:
+    return models
 
 
 def test_presets_roundtrip_through_json():
