@@ -6,6 +6,9 @@
 Prints medians (ms). Matching: ``match_blocks`` (k = 1, two-stage argmax) per query at each
 batch, with and without the library-wide softmax probabilities, and the batch-1 ratio to the
 bandwidth bound = library bytes / measured copy bandwidth (numpy copy of the same bytes).
+Per-object libraries (``--objects 14``): a batch whose queries all belong to one object against
+one spread over every object (each query is matched against its own object's library only, so
+the cost grows with the number of distinct objects in the batch).
 End-to-end: ``predict_crops`` (network + matching + translation; random parameters of the
 preset's architecture, one object) per crop and crops/s, with and without TTA.
 """
@@ -38,6 +41,8 @@ def main() -> None:
     ap.add_argument("--presets", default="cpu,paper")
     ap.add_argument("--e2e-sizes", default="480000", help="library sizes for the end-to-end runs")
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--objects", type=int, default=14, help="objects of the per-object matching run")
+    ap.add_argument("--objects-size", type=int, default=480000, help="library size of the per-object matching run")
     args = ap.parse_args()
     sizes = [int(s) for s in args.sizes.split(",")]
     batches = [int(b) for b in args.batches.split(",")]
@@ -64,6 +69,21 @@ def main() -> None:
             if b == 1:
                 row.append(f"ratio to bound {t0 / bound:4.2f}")
         print("  ".join(row), flush=True)
+
+    print(f"\n== matching with {args.objects} per-object libraries of {args.objects_size} (k=1, with probabilities), ms per query ==")
+    libs = rng.normal(size=(args.objects, args.objects_size, E)).astype(np.float32)
+    libs /= np.linalg.norm(libs, axis=2, keepdims=True)
+    for b in batches:
+        blocks, nv = pad_library(libs, auto_block(b, args.objects_size))
+        q = jnp.asarray(libs[0, rng.integers(0, args.objects_size, b)] + 0.01)
+        row = [f"B={b:3d}"]
+        for name, obj in (("one object", np.zeros(b, np.int32)),
+                          ("objects spread", (np.arange(b) % args.objects).astype(np.int32))):
+            t = med(lambda q, bl, o: match_blocks(q, bl, n_valid=nv, k=1, obj_idx=o), q, blocks, jnp.asarray(obj),
+                    repeats=args.repeats)
+            row.append(f"{name}: {t / b:7.3f}")
+        print("  ".join(row), flush=True)
+    del libs
 
     from sc6d_jax.inference import pack_library, predict_crops
     from sc6d_jax.inference._library import embed_library, library_grid
