@@ -61,9 +61,7 @@ def main(argv: list[str]) -> int:
     if a.run is None and not a.train and not a.no_model and "builtin" in pretrained.available():
         a.run = Path("builtin")
     if a.run is not None:
-        ckpt, _ = pretrained.resolve(a.run)  # a shipped name, or a path
-        if not ((ckpt / "config.json").is_file() or (ckpt / "meta.json").is_file()):
-            raise FileNotFoundError(f"{ckpt}: not a training run directory (no config.json)")
+        pretrained.check_run(a.run)  # a shipped name, or a path
     from sc6d_jax.check import main as check_main
     from sc6d_jax.objects import SYMMETRIC_IDS, write_models
     from sc6d_jax.render._dataset import DatasetSpec, render_dataset

@@ -75,6 +75,16 @@ def resolve(run: str | os.PathLike) -> tuple[Path, Path]:
     return ckpt, cache_root() / f"{name}-{digest}" / "library"
 
 
+def check_run(run: str | os.PathLike) -> Path:
+    """The checkpoint or run directory of ``run`` (a path or a shipped name); FileNotFoundError
+    naming the problem when it is neither a training run nor a shipped model."""
+    path, _ = resolve(run)
+    if not ((path / "config.json").is_file() or (path / "meta.json").is_file()):
+        raise FileNotFoundError(f"{path / 'config.json'}: not a training run directory "
+                                f"(nor a shipped model: {', '.join(available()) or 'none shipped'})")
+    return path
+
+
 def ship(run_dir: str | os.PathLike, out_dir: str | os.PathLike, step: int | None = None,
          note: str = "") -> Path:
     """Write the parameters of a run's newest (or ``step``) checkpoint as a shipped model.

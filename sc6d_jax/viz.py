@@ -317,9 +317,9 @@ def write_eval_figures(
         from sc6d_jax.bop import read_results_csv
         from sc6d_jax.inference import Estimator
 
-        run = Path(run)
-        if not (run / "config.json").is_file():
-            raise FileNotFoundError(f"{run / 'config.json'}: not a training run directory")
+        from sc6d_jax.pretrained import check_run
+
+        check_run(run)
         ds = BopDataset(dataset_dir, split=split)
         est = Estimator.load(run, library_size=library_size, progress=False)
         k = min(int(top_k), est.library.size)

@@ -77,8 +77,10 @@ def main(argv: list[str]) -> int:
     args = ap.parse_args(argv)
     if args.run is not None and args.figures is None:
         raise ValueError("--run is only used with --figures DIR")
-    if args.run is not None and not (Path(args.run) / "config.json").is_file():
-        raise FileNotFoundError(f"{Path(args.run) / 'config.json'}: --run is not a training run directory")
+    if args.run is not None:
+        from sc6d_jax.pretrained import check_run
+
+        check_run(args.run)
     if args.n_images < 0:
         raise ValueError(f"--n-images must be >= 0, got {args.n_images}")
 
