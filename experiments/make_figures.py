@@ -1,7 +1,9 @@
 """Regenerate the README's pictures (deterministic): ``python experiments/make_figures.py``.
 
 Writes under experiments/figures/: objects.png (the built-in set), crops.png (training crops from
-the stream), scene.png (a rendered BOP test image) and check.png (render-and-check).
+the stream), scene.png (a rendered BOP test image), check.png (render-and-check), and from a
+``sc6d demo`` run with the shipped ``builtin`` model: poses.png (estimated poses drawn on a test
+image) and rotdist.png (one target's top rotations on the sphere).
 """
 
 from __future__ import annotations
@@ -59,6 +61,14 @@ def main() -> int:
         _save("scene.png", cv2.resize(scene, (480, 360), interpolation=cv2.INTER_AREA))
         run_checks(4, 0, OUT / "check.png")
         print(f"wrote {OUT / 'check.png'}")
+        from sc6d_jax.demo import main as demo_main
+
+        demo = Path(tmp) / "demo"
+        demo_main(["--out", str(demo), "--scenes", "1", "--images-per-scene", "2"])
+        for name, pattern in (("poses.png", "poses_*.png"), ("rotdist.png", "rotdist_*.png")):
+            src = sorted((demo / "figures").glob(pattern))[0]
+            (OUT / name).write_bytes(src.read_bytes())
+            print(f"wrote {OUT / name} (from {src.name})")
     return 0
 
 
