@@ -206,7 +206,7 @@ def _save_record(out: Path, rec: dict[str, Any]) -> None:
     atomic_write_json(out / "lmo.json", rec)
 
 
-def train_stage(out: Path, data: Path, budget_name: str, steps: int | None) -> tuple[Path, float]:
+def train_stage(out: Path, data: Path, budget_name: str, steps: int | None, workers: int = 1) -> tuple[Path, float]:
     """Train (or resume, or skip a finished) ``DIR/run``; returns it and the training wall time
     accumulated over the invocations that trained."""
     budget = BUDGETS[budget_name]
@@ -229,7 +229,7 @@ def train_stage(out: Path, data: Path, budget_name: str, steps: int | None) -> t
             _say(f"[1/4] train: finished earlier ({cfg_steps} steps in {run_dir})")
             return run_dir, float(rec.get("train_wall_s", float("nan")))
     args: list[Any] = ["train", "--models", data / "models", "--out", run_dir, "--preset", budget.preset,
-                       "--workers", 1, "--resume", "--no-progress", "--quiet"]
+                       "--workers", workers, "--resume", "--no-progress", "--quiet"]
     if target is not None:
         args += ["--steps", target]
     if budget.checkpoint_every is not None:
@@ -495,6 +495,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="experiment folder (created; rerun to resume)")
     p.add_argument("--budget", choices=sorted(BUDGETS), default="tiny")
     p.add_argument("--steps", type=int, default=None, help="training steps (tiny: 12; full: the cpu preset's)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="renderer worker processes (the LM-O meshes, 12k-50k faces, render ~5x slower than "
+                        "the built-in objects: 2 keeps a 2-core machine busy)")
     p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="LM-O BOP folder (default ../shared/data/lmo)")
     p.add_argument("--run", default=None, help="skip training: a training run directory or a shipped name (lmo)")
     p.add_argument("--reference", type=Path, default=DEFAULT_REFERENCE,
@@ -524,7 +527,7 @@ def experiment(args: argparse.Namespace) -> int:
                      if wall is not None else "")
         budget_label = None
     else:
-        run_dir, wall = train_stage(out, data, args.budget, args.steps)
+        run_dir, wall = train_stage(out, data, args.budget, args.steps, args.workers)
         run = run_info(run_dir)
         budget_label = args.budget
         wall_note = "the `sc6d train` processes of this experiment, start-up and compilation included"
