@@ -35,12 +35,13 @@ import math
 import re
 import shlex
 import signal
-import subprocess
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
+
+from sc6d_jax._subprocess import StageFailed, run_sc6d
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO.parent / "shared" / "data" / "lmo"
@@ -66,10 +67,6 @@ BUDGETS: dict[str, Budget] = {
 }
 
 
-class StageFailed(RuntimeError):
-    """A ``sc6d`` sub-command exited with a non-zero status."""
-
-
 def _say(msg: str) -> None:
     print(msg, flush=True)
 
@@ -78,41 +75,6 @@ def _on_term(signum: int, frame: Any) -> None:  # pragma: no cover - a kill of t
     raise KeyboardInterrupt(f"signal {signum}")
 
 
-# --------------------------------------------------------------------------- processes
-def run_sc6d(args: Sequence[Any], log: Path, heartbeat: Callable[[], None] | None = None,
-             every_s: float = 30.0) -> float:
-    """``python -m sc6d_jax.cli ARGS`` with its output in ``log``; the seconds it took.
-
-    ``heartbeat`` is called every ``every_s`` seconds while the command runs (progress lines).
-    Raises StageFailed with the log's tail on a non-zero exit; the child is terminated when this
-    process is interrupted.
-    """
-    log.parent.mkdir(parents=True, exist_ok=True)
-    cmd = [sys.executable, "-m", "sc6d_jax.cli", *map(str, args)]
-    t0 = time.perf_counter()
-    with open(log, "w", encoding="utf-8") as f:
-        f.write("$ sc6d " + shlex.join(cmd[3:]) + "\n")
-        f.flush()
-        child = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT)
-        try:
-            while True:
-                try:
-                    rc = child.wait(timeout=every_s)
-                    break
-                except subprocess.TimeoutExpired:
-                    if heartbeat is not None:
-                        heartbeat()
-        except BaseException:
-            child.terminate()
-            try:
-                child.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                child.kill()
-            raise
-    if rc != 0:
-        tail = "\n".join(log.read_text(encoding="utf-8", errors="replace").splitlines()[-15:])
-        raise StageFailed(f"`sc6d {args[0]}` exited with status {rc} (log {log}):\n{tail}")
-    return time.perf_counter() - t0
 
 
 # --------------------------------------------------------------------------- inputs

@@ -27,12 +27,13 @@ import json
 import math
 import os
 import signal
-import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
+
+from sc6d_jax._subprocess import StageFailed, run_sc6d
 
 # --------------------------------------------------------------------------- configuration
 
@@ -90,43 +91,10 @@ METRICS = (("AR", "bop19_average_recall"), ("AR_MSSD", "bop19_average_recall_mss
 
 
 # --------------------------------------------------------------------------- processes
-class StageFailed(RuntimeError):
-    pass
-
-
-_child: subprocess.Popen | None = None
-
-
 def _on_term(signum: int, frame: Any) -> None:  # pragma: no cover - exercised by the kill test
     raise KeyboardInterrupt(f"signal {signum}")
 
 
-def run_sc6d(args: Sequence[str], log: Path) -> float:
-    """``python -m sc6d_jax.cli ARGS`` with output to ``log``; seconds taken. StageFailed with the
-    log's tail on a non-zero exit. The child is terminated when this process is interrupted."""
-    global _child
-    log.parent.mkdir(parents=True, exist_ok=True)
-    cmd = [sys.executable, "-m", "sc6d_jax.cli", *map(str, args)]
-    t0 = time.perf_counter()
-    with open(log, "w", encoding="utf-8") as f:
-        f.write("$ " + " ".join(cmd[1:]) + "\n")
-        f.flush()
-        _child = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT)
-        try:
-            rc = _child.wait()
-        except BaseException:
-            _child.terminate()
-            try:
-                _child.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                _child.kill()
-            raise
-        finally:
-            _child = None
-    if rc != 0:
-        tail = "\n".join(log.read_text(encoding="utf-8", errors="replace").splitlines()[-15:])
-        raise StageFailed(f"`sc6d {args[0]}` exited with status {rc} (log {log}):\n{tail}")
-    return time.perf_counter() - t0
 
 
 def run_eval(args: Sequence[Any], scores: Path, log: Path) -> None:
