@@ -45,7 +45,8 @@ def test_presets_roundtrip_through_json():
             paper.stream.batch_size) == (256, "resnet34", 5000, 1000, 64)
     cpu = preset("cpu")
     assert (cpu.stream.batch_size, cpu.model.crop_size) == (32, 64)
-    assert (cpu.optim.lr, cpu.optim.lr_end, cpu.optim.weight_decay) == (5e-4, 1e-5, 1e-4)
+    assert (cpu.optim.lr, cpu.optim.lr_end, cpu.optim.weight_decay) == (1e-3, 1e-5, 1e-4)
+    assert (cpu.steps, cpu.stream.curriculum) == (14_000, 4_000)  # about an hour on 2 cores
     with pytest.raises(ValueError, match="unknown preset 'huge'.*paper, cpu, tiny"):
         preset("huge")
     with pytest.raises(ValueError, match="unknown field"):
