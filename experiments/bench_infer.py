@@ -43,6 +43,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--objects", type=int, default=14, help="objects of the per-object matching run")
     ap.add_argument("--objects-size", type=int, default=480000, help="library size of the per-object matching run")
+    ap.add_argument("--shipped", default=None,
+                    help="also time Estimator.predict of a shipped model (e.g. builtin): batch 32, one object vs all")
     args = ap.parse_args()
     sizes = [int(s) for s in args.sizes.split(",")]
     batches = [int(b) for b in args.batches.split(",")]
@@ -116,6 +118,28 @@ def main() -> None:
                     t = med(f, rgb, K, center, side, obj, repeats=args.repeats)
                     print(f"{name:6s} N={n:>8} tta={int(tta)} B={b:3d}: {t / b:8.2f} ms/crop  {1e3 * b / t:7.1f} crops/s",
                           flush=True)
+
+
+    if args.shipped:
+        shipped(args.shipped, args.repeats)
+
+
+def shipped(name: str, repeats: int, batch: int = 32) -> None:
+    """``Estimator.predict`` of a shipped model (crops, network, 480k matching, translation) on a
+    random 640x480 image: ms per crop with every box of one object vs boxes over all objects."""
+    from sc6d_jax import Estimator
+
+    est = Estimator.load(name, progress=False)
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 256, (480, 640, 3), dtype=np.uint8)
+    K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1]])
+    ids_all = list(est.obj_ids)
+    boxes = np.column_stack([rng.uniform(50, 400, batch), rng.uniform(50, 300, batch), rng.uniform(40, 120, (batch, 2))])
+    print(f"\n== Estimator.predict, shipped model {name!r} ({len(ids_all)} objects, {est.library.size} rotations), batch {batch} ==")
+    for label, ids in (("one object", [ids_all[0]] * batch),
+                       ("all objects", [ids_all[i % len(ids_all)] for i in range(batch)])):
+        t = med(lambda: est.predict(img, K, boxes, ids), repeats=repeats)
+        print(f"{label:12s}: {t / batch:7.2f} ms per crop", flush=True)
 
 
 if __name__ == "__main__":
