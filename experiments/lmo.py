@@ -34,14 +34,13 @@ import json
 import math
 import re
 import shlex
-import signal
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
-from sc6d_jax._subprocess import StageFailed, run_sc6d
+from sc6d_jax._subprocess import experiment_main, run_sc6d
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO.parent / "shared" / "data" / "lmo"
@@ -69,10 +68,6 @@ BUDGETS: dict[str, Budget] = {
 
 def _say(msg: str) -> None:
     print(msg, flush=True)
-
-
-def _on_term(signum: int, frame: Any) -> None:  # pragma: no cover - a kill of the experiment
-    raise KeyboardInterrupt(f"signal {signum}")
 
 
 
@@ -514,18 +509,7 @@ def experiment(args: argparse.Namespace) -> int:
 
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
-    previous = signal.signal(signal.SIGTERM, _on_term)  # a kill ends the running sc6d child too
-    try:
-        return experiment(args)
-    except (ValueError, FileNotFoundError, StageFailed) as exc:
-        print(f"lmo.py: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("lmo.py: interrupted; rerun the same command to resume", file=sys.stderr)
-        return 130
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-
+    return experiment_main("lmo.py", lambda: experiment(args))
 
 if __name__ == "__main__":
     sys.exit(main(sys.argv[1:]))

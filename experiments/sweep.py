@@ -26,14 +26,13 @@ import io
 import json
 import math
 import os
-import signal
 import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
-from sc6d_jax._subprocess import StageFailed, run_sc6d
+from sc6d_jax._subprocess import experiment_main, run_sc6d
 
 # --------------------------------------------------------------------------- configuration
 
@@ -91,10 +90,6 @@ METRICS = (("AR", "bop19_average_recall"), ("AR_MSSD", "bop19_average_recall_mss
 
 
 # --------------------------------------------------------------------------- processes
-def _on_term(signum: int, frame: Any) -> None:  # pragma: no cover - exercised by the kill test
-    raise KeyboardInterrupt(f"signal {signum}")
-
-
 
 
 def run_eval(args: Sequence[Any], scores: Path, log: Path) -> None:
@@ -419,27 +414,22 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
-    signal.signal(signal.SIGTERM, _on_term)
-    try:
-        if args.sweep == "ablation":
-            seeds = _parse_ints(args.seeds, "--seeds") if args.seeds else None
-            rows = None
-            if args.rows:
-                rows = [r.strip() for r in args.rows.split(",") if r.strip()]
-                bad = [r for r in rows if r not in ROW_BY_NAME]
-                if bad or not rows:
-                    raise ValueError(f"unknown row(s) {bad or args.rows!r}; rows: {', '.join(ROW_BY_NAME)}")
-            return ablation(args.out, args.budget, seeds, rows, figures=not args.no_figures)
-        sizes = _parse_ints(args.sizes, "--sizes") if args.sizes else None
-        return so3_samples(args.run, args.out, args.budget, sizes, refine=not args.no_refine,
-                           figures=not args.no_figures, dataset=args.dataset)
-    except (ValueError, FileNotFoundError, StageFailed) as exc:
-        print(f"sweep.py: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("sweep.py: interrupted; rerun the same command to resume", file=sys.stderr)
-        return 130
+    return experiment_main("sweep.py", lambda: _run(args))
 
+
+def _run(args: argparse.Namespace) -> int:
+    if args.sweep == "ablation":
+        seeds = _parse_ints(args.seeds, "--seeds") if args.seeds else None
+        rows = None
+        if args.rows:
+            rows = [r.strip() for r in args.rows.split(",") if r.strip()]
+            bad = [r for r in rows if r not in ROW_BY_NAME]
+            if bad or not rows:
+                raise ValueError(f"unknown row(s) {bad or args.rows!r}; rows: {', '.join(ROW_BY_NAME)}")
+        return ablation(args.out, args.budget, seeds, rows, figures=not args.no_figures)
+    sizes = _parse_ints(args.sizes, "--sizes") if args.sizes else None
+    return so3_samples(args.run, args.out, args.budget, sizes, refine=not args.no_refine,
+                       figures=not args.no_figures, dataset=args.dataset)
 
 if __name__ == "__main__":
     sys.exit(main(sys.argv[1:]))

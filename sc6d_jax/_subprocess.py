@@ -7,6 +7,7 @@ every stage as a separate process so that an interrupted experiment can resume.
 from __future__ import annotations
 
 import shlex
+import signal
 import subprocess
 import sys
 import time
@@ -52,3 +53,25 @@ def run_sc6d(args: Sequence[Any], log: Path, heartbeat: Callable[[], None] | Non
         tail = "\n".join(log.read_text(encoding="utf-8", errors="replace").splitlines()[-15:])
         raise StageFailed(f"`sc6d {args[0]}` exited with status {rc} (log {log}):\n{tail}")
     return time.perf_counter() - t0
+
+
+def _on_term(signum: int, frame: Any) -> None:  # pragma: no cover - a kill of the experiment
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def experiment_main(prog: str, body: Callable[[], int]) -> int:
+    """Run an experiment's ``body`` as a command: SIGTERM interrupts it like Ctrl-C (so the
+    running ``sc6d`` child is terminated too), bad input and failed stages end with one error
+    line and status 2, an interruption with status 130 and a hint to rerun (experiments resume).
+    The previous SIGTERM handler is restored afterwards."""
+    previous = signal.signal(signal.SIGTERM, _on_term)
+    try:
+        return body()
+    except (ValueError, FileNotFoundError, StageFailed) as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted; rerun the same command to resume", file=sys.stderr)
+        return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
