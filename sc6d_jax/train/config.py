@@ -304,9 +304,10 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # objects, without it the rotation loss stayed at ln(Q+1) for 2,300 steps; with it the
         # offset error fell by 40 % and the rotation loss started falling within 1,800 steps.
         # 14,000 steps: about an hour on 2 cores (4 steps/s with one renderer worker).  The
-        # rotation loss falls about as fast per crop *of one object* as with a single object
-        # (measured: 14 objects learn ~14x slower per step), so an hour is ~1,000 steps' worth
-        # of each object; lr 1e-3 and 2e-3 learned no faster than 5e-4 there.
+        # rotation loss falls per crop *of one object*: alone, one object goes 9.2 -> 6.2 in 350
+        # steps, 14 together stay at 8.52 for 400 (experiments/diag_learning.py), so an hour is
+        # ~1,000 steps' worth of each object; lr 2e-3 learned no faster than 5e-4 over 800
+        # steps of the stream, nor 3e-3 than 1e-3 for one object.
         cfg = TrainConfig(
             model=ModelConfig(
                 n_objects=1, crop_size=64, backbone="tiny", width=16, decoder_width=32, feat_dim=32,
