@@ -306,8 +306,9 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # 14,000 steps: about an hour on 2 cores (4 steps/s with one renderer worker).  The
         # rotation loss falls per crop *of one object*: alone, one object goes 9.2 -> 6.2 in 350
         # steps, 14 together stay at 8.52 for 400 (experiments/diag_learning.py), so an hour is
-        # ~1,000 steps' worth of each object; lr 2e-3 learned no faster than 5e-4 over 800
-        # steps of the stream, nor 3e-3 than 1e-3 for one object.
+        # ~1,000 steps' worth of each object.  The learning rate is not the limit: on the easy
+        # stream of 14 objects, 800 steps ended at 8.47 with lr 2e-3 and 8.53 with 5e-4; one
+        # object (diag_learning.py --objects 1) ended at 6.3 with 3e-3 and 6.2 with 1e-3.
         cfg = TrainConfig(
             model=ModelConfig(
                 n_objects=1, crop_size=64, backbone="tiny", width=16, decoder_width=32, feat_dim=32,
