@@ -29,6 +29,8 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--steps", type=int, default=400)
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--gn-groups", type=int, default=None, help="GroupNorm groups (preset's by default)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a field of the cpu preset, as in sc6d train --set (e.g. model.per_object_rot_out=true)")
     a = ap.parse_args(argv)
 
     import jax
@@ -37,6 +39,7 @@ def main(argv: list[str]) -> int:
     from sc6d_jax import model
     from sc6d_jax.data import CropStream, StreamConfig, delta_z_range
     from sc6d_jax.train import preset
+    from sc6d_jax.train.cli import apply_overrides
 
     objs = None if a.objects == "all" else tuple(int(x) for x in a.objects.split(","))
     scfg = StreamConfig(a.models, crop_size=64, batch_size=32, workers=0, curriculum=10**9, occlusion=0.0,
@@ -46,7 +49,7 @@ def main(argv: list[str]) -> int:
         batches = [{k: v for k, v in s.batch(i).items() if k in keys} for i in range(a.batches)]
         n_obj = len(s.obj_ids)
     z_range = delta_z_range(scfg)
-    tc = preset("cpu")
+    tc = apply_overrides(preset("cpu"), a.set)
     mc = dataclasses.replace(tc.model, n_objects=n_obj)
     if a.gn_groups is not None:
         mc = dataclasses.replace(mc, gn_groups=a.gn_groups)

@@ -21,6 +21,7 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
+import cv2
 import mujoco
 import numpy as np
 import trimesh
@@ -28,6 +29,12 @@ import trimesh
 from sc6d_jax.render._mesh import bake_mesh, prepare_mesh
 
 _HIDDEN = np.array([0.0, 0.0, -1.0e7])  # behind the camera: clipped away
+#: Geom group of the bodies not placed in the current call; the renderer's MjvOption hides it,
+#: so mjv_updateScene leaves those geoms out of the scene.  Each geom in the scene costs a
+#: draw call even when clipped: with the 30 slots of the training stream's renderer that was
+#: 0.54 ms per mjr_render against 0.07 ms with only the placed object (llvmpipe, 128x128).
+_HIDE_GROUP = 5
+_EYE3 = np.eye(3)
 PRIMITIVE_SHAPES = ("box", "sphere", "cylinder", "capsule", "ellipsoid")
 _PRIM_TYPES = {
     "box": mujoco.mjtGeom.mjGEOM_BOX,
@@ -103,13 +110,16 @@ def _validate_pose(R: np.ndarray, t: np.ndarray, what: str) -> tuple[np.ndarray,
     t = np.asarray(t, dtype=np.float64).reshape(-1)
     if R.shape != (3, 3) or t.shape != (3,):
         raise ValueError(f"{what}: R must be (3,3) and t (3,), got {R.shape} and {t.shape}")
-    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+    if not (np.isfinite(R).all() and np.isfinite(t).all()):
         raise ValueError(f"{what}: pose has non-finite values")
     # BOP ground truth is stored with few digits (LM-O: |R R^T - I| up to 0.01): accept small
-    # deviations and render the nearest rotation.
-    if np.abs(R @ R.T - np.eye(3)).max() > 0.02 or np.linalg.det(R) < 0:
+    # deviations and render the nearest rotation.  (Scalar arithmetic: this runs per object
+    # per training crop.)
+    dev = float(np.abs(R @ R.T - _EYE3).max())
+    a, b, c, d, e, f, g, h, i = R.ravel().tolist()
+    if dev > 0.02 or a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0:
         raise ValueError(f"{what}: R is not a rotation matrix")
-    if np.abs(R @ R.T - np.eye(3)).max() > 1e-9:
+    if dev > 1e-9:
         u, _, vt = np.linalg.svd(R)
         R = u @ vt
     return R, t
@@ -246,6 +256,7 @@ class Renderer:
         self._geom_mocap = np.full(model.ngeom, -1, np.int64)
         for g in range(model.ngeom):
             self._geom_mocap[g] = model.body_mocapid[model.geom_bodyid[g]]
+        self._geom_group0 = model.geom_group.copy()
         self.data.mocap_pos[:] = _HIDDEN
         self._cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "cam")
 
@@ -256,6 +267,7 @@ class Renderer:
         self._con.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
         self._scene = mujoco.MjvScene(model, maxgeom=model.ngeom + 8)
         self._opt = mujoco.MjvOption()
+        self._opt.geomgroup[_HIDE_GROUP] = 0
         self._cam = mujoco.MjvCamera()
         self._cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
         self._cam.fixedcamid = self._cam_id
@@ -263,7 +275,6 @@ class Renderer:
         self._rgb = np.empty((self.height, self.width, 3), np.uint8)
         self._seg = np.empty((self.height, self.width, 3), np.uint8)
         self._depth = np.empty((self.height, self.width), np.float32)
-        self._segmap_key: tuple | None = None
         self._segmap = np.zeros(1, np.int64)
         self._closed = False
         self._force_segmentation = False  # tests: always use the segmentation pass
@@ -344,6 +355,9 @@ class Renderer:
 
     def _update(self, K: np.ndarray) -> None:
         m, d = self.model, self.data
+        # geoms of hidden mocap bodies go to the hidden group (left out of the scene)
+        placed = np.append(d.mocap_pos[:, 2] > _HIDDEN[2] / 2, True)  # index -1: not a mocap body
+        m.geom_group[:] = np.where(placed[self._geom_mocap], self._geom_group0, _HIDE_GROUP)
         mujoco.mj_kinematics(m, d)
         mujoco.mj_comPos(m, d)
         mujoco.mj_camlight(m, d)
@@ -365,14 +379,13 @@ class Renderer:
 
     def _segment(self, slots_by_mocap: np.ndarray) -> np.ndarray:
         scn = self._scene
-        key = (scn.ngeom,)
-        if self._segmap_key != key:
-            geom_of_seg = np.full(scn.ngeom + 1, -1, np.int64)
-            for g in scn.geoms[: scn.ngeom]:
-                if g.segid >= 0 and g.objtype == mujoco.mjtObj.mjOBJ_GEOM:
-                    geom_of_seg[g.segid + 1] = g.objid
-            self._segmap = geom_of_seg
-            self._segmap_key = key
+        # the scene holds only the placed geoms, so the segment ids change from call to call
+        geom_of_seg = np.full(scn.ngeom + 1, -1, np.int64)
+        for i in range(scn.ngeom):
+            g = scn.geoms[i]
+            if g.segid >= 0 and g.objtype == mujoco.mjtObj.mjOBJ_GEOM:
+                geom_of_seg[g.segid + 1] = g.objid
+        self._segmap = geom_of_seg
         flags = scn.flags
         flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = True
         flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = True
@@ -382,12 +395,16 @@ class Renderer:
         finally:
             flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = False
             flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = False
-        s = self._seg
-        segid = s[..., 0].astype(np.int64) | (s[..., 1].astype(np.int64) << 8) | (s[..., 2].astype(np.int64) << 16)
-        segid = np.minimum(segid, len(self._segmap) - 1)
-        geom = self._segmap[segid]
+        # segment id (+1, 0 = background) -> geom -> mocap body -> instance, as one small table
+        geom = self._segmap
         mocap = np.where(geom >= 0, self._geom_mocap[np.maximum(geom, 0)], -1)
-        inst = slots_by_mocap[mocap + 1]
+        inst_of_seg = slots_by_mocap[mocap + 1]
+        s = self._seg
+        if len(inst_of_seg) <= 256:  # ids fit the red channel: one lookup on uint8
+            inst = inst_of_seg[np.minimum(s[..., 0], len(inst_of_seg) - 1)]
+        else:
+            segid = s[..., 0].astype(np.int64) | (s[..., 1].astype(np.int64) << 8) | (s[..., 2].astype(np.int64) << 16)
+            inst = inst_of_seg[np.minimum(segid, len(inst_of_seg) - 1)]
         return np.ascontiguousarray(inst[::-1])
 
     # ------------------------------------------------------------------ rendering
@@ -447,8 +464,8 @@ class Renderer:
                         lut[mid + 1] = i
                     inst = self._segment(lut)
                 mask_visib = inst[None] == np.arange(n_obj, dtype=np.int32)[:, None, None]
-                if background is not None:
-                    np.copyto(rgb, background, where=(inst < 0)[..., None])
+                if background is not None:  # cv2.copyTo: ~15x faster than a broadcast np.copyto
+                    rgb = cv2.copyTo(np.ascontiguousarray(background), (inst < 0).view(np.uint8), rgb)
             if full_masks and single:
                 mask_full = mask_visib.copy()
             elif full_masks:
