@@ -7,7 +7,9 @@ For each preset, one subprocess (so that peak memory is per preset) runs the rea
 - ``stream``: batches rendered on the fly by ``sc6d_jax.data.CropStream`` (worker processes).
 
 Each run logs every ``--window`` steps; the first window (compilation) is dropped and the
-median of the remaining windows is reported.  The stream alone is also timed (batches/s with
+median of the remaining windows is the run's figure.  The two modes alternate for ``--rounds``
+rounds (the machine's load drifts), and the medians over rounds are reported, with the stream
+overhead of each round.  The stream alone is also timed (batches/s with
 the same workers).  Peak memory is ``resource.getrusage`` maxrss of the process and of its
 largest child (the stream workers).
 
@@ -45,7 +47,8 @@ def _models_dir(arg: str | None, tmp: Path) -> Path:
     return out
 
 
-def _one(preset_name: str, models: Path, windows: int, window: int, workers: int | None, batch: int | None) -> dict:
+def _one(preset_name: str, models: Path, windows: int, window: int, workers: int | None, batch: int | None,
+         rounds: int = 1) -> dict:
     import numpy as np
 
     from sc6d_jax import data
@@ -87,19 +90,27 @@ def _one(preset_name: str, models: Path, windows: int, window: int, workers: int
 
     res: dict = {"preset": preset_name, "batch_size": cfg.stream.batch_size, "crop_size": cfg.model.crop_size,
                  "stream_batches_per_s": stream_bps, "workers": workers}
+    per_round: dict[str, list[float]] = {"prerendered": [], "stream": []}
+    walls: dict[str, list[float]] = {"prerendered": [], "stream": []}
     with tempfile.TemporaryDirectory() as tmp:
-        for mode, fns in (("prerendered", DataFns(dfs.stream_config, Cycle, dfs.z_range)), ("stream", dfs)):
-            run = Path(tmp) / mode
-            t0 = time.perf_counter()
-            train(cfg, models, run, workers=workers, progress=False, verbose=False, data_fns=fns)
-            wall = time.perf_counter() - t0
-            recs = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
-            rates = [r["crops_per_s"] for r in recs[1:]]
-            crops = float(np.median(rates))
-            res[mode] = {"crops_per_s": crops, "steps_per_s": crops / cfg.stream.batch_size,
-                         "windows_crops_per_s": rates, "wall_s": wall}
+        # the two modes alternate, round after round, so that a change in the machine's load
+        # hits both; each round's figure is the median of its windows (compile window dropped)
+        for rnd in range(rounds):
+            for mode, fns in (("prerendered", DataFns(dfs.stream_config, Cycle, dfs.z_range)), ("stream", dfs)):
+                run = Path(tmp) / f"{mode}{rnd}"
+                t0 = time.perf_counter()
+                train(cfg, models, run, workers=workers, progress=False, verbose=False, data_fns=fns)
+                walls[mode].append(time.perf_counter() - t0)
+                recs = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+                per_round[mode].append(float(np.median([r["crops_per_s"] for r in recs[1:]])))
+    for mode in per_round:
+        crops = float(np.median(per_round[mode]))
+        res[mode] = {"crops_per_s": crops, "steps_per_s": crops / cfg.stream.batch_size,
+                     "rounds_crops_per_s": per_round[mode], "wall_s": walls[mode]}
     step_s = 1.0 / res["prerendered"]["steps_per_s"]
-    res["stream_overhead_frac"] = 1.0 - res["stream"]["steps_per_s"] / res["prerendered"]["steps_per_s"]
+    overheads = [1.0 - s_ / p_ for s_, p_ in zip(per_round["stream"], per_round["prerendered"])]
+    res["stream_overhead_frac"] = float(np.median(overheads))
+    res["stream_overhead_rounds"] = overheads
     res["stream_time_frac_if_serial"] = (1.0 / stream_bps) / step_s
     ru_self = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     ru_child = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
@@ -117,6 +128,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--paper-window", type=int, default=1)
     p.add_argument("--paper-batch", type=int, default=None, help="batch size for the paper preset (default 64)")
     p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--rounds", type=int, default=3,
+                   help="alternating prerendered/stream rounds; figures are medians over rounds")
     p.add_argument("--json", default=None, help="write the results here")
     p.add_argument("--_one", default=None, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
@@ -125,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
         name = a._one
         paper = name == "paper"
         r = _one(name, Path(a.models), a.paper_windows if paper else a.windows, a.paper_window if paper else a.window,
-                 a.workers, a.paper_batch if paper else None)
+                 a.workers, a.paper_batch if paper else None, a.rounds)
         print("RESULT " + json.dumps(r), flush=True)
         return 0
 
@@ -135,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
         for name in a.presets:
             cmd = [sys.executable, __file__, "--_one", name, "--models", str(models), "--windows", str(a.windows),
                    "--window", str(a.window), "--paper-windows", str(a.paper_windows),
-                   "--paper-window", str(a.paper_window)]
+                   "--paper-window", str(a.paper_window), "--rounds", str(a.rounds)]
             if a.paper_batch:
                 cmd += ["--paper-batch", str(a.paper_batch)]
             if a.workers is not None:
@@ -150,7 +163,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name:6s} batch {r['batch_size']:3d} crop {r['crop_size']:3d}: "
                   f"prerendered {r['prerendered']['steps_per_s']:.2f} steps/s ({r['prerendered']['crops_per_s']:.0f} crops/s); "
                   f"stream {r['stream']['steps_per_s']:.2f} steps/s ({r['stream']['crops_per_s']:.0f} crops/s); "
-                  f"stream overhead {100 * r['stream_overhead_frac']:.1f} %; stream alone {r['stream_batches_per_s']:.1f} batches/s "
+                  f"stream overhead {100 * r['stream_overhead_frac']:.1f} % (median of rounds: "
+                  f"{', '.join(f'{100 * x:.1f}' for x in r['stream_overhead_rounds'])}); stream alone {r['stream_batches_per_s']:.1f} batches/s "
                   f"({100 * r['stream_time_frac_if_serial']:.1f} % of a step if serial); "
                   f"peak RSS {r['peak_rss_mb']['self']:.0f} MB (+ largest child {r['peak_rss_mb']['largest_child']:.0f} MB)",
                   flush=True)

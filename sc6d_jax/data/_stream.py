@@ -28,6 +28,8 @@ MIN_VISIBLE_PX = 50
 MIN_VISIBLE_FRACTION = 0.05
 #: Procedural backgrounds pre-drawn per worker.
 BACKGROUND_BANK = 256
+#: Scheduling priority the worker processes lower themselves by (os.nice).
+WORKER_NICENESS = 10
 
 
 @dataclass(frozen=True)
@@ -262,6 +264,10 @@ def _init_worker(cfg: StreamConfig) -> None:
     os.environ.setdefault("MUJOCO_GL", "egl")
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
     cv2.setNumThreads(1)  # one core per worker: OpenCV's own thread pool only oversubscribes
+    try:  # below the training process: the workers fill the cores' idle time between XLA's ops
+        os.nice(WORKER_NICENESS)
+    except OSError:  # pragma: no cover - not permitted on some systems
+        pass
     _WORKER = _Worker(cfg)
 
 
