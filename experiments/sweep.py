@@ -1,7 +1,7 @@
 """Experiment sweeps: the paper's ablation (Table 3) and SO(3) sample count (supplementary table).
 
     python experiments/sweep.py ablation --out DIR [--budget tiny|full] [--seeds 0,1,2] [--rows A0,A4,TTA]
-    python experiments/sweep.py so3-samples --run RUN_DIR --out DIR [--budget tiny|full] [--sizes 20000,60000]
+    python experiments/sweep.py so3-samples --run RUN_DIR|builtin --out DIR [--budget tiny|full] [--sizes 20000,60000]
                                             [--no-refine] [--dataset BOP_DIR]
 
 Every configuration runs as separate processes (``sc6d train`` / ``sc6d predict`` / ``sc6d eval``
@@ -329,14 +329,19 @@ def so3_samples(run: Path, out: Path, budget_name: str, sizes: Sequence[int] | N
     from sc6d_jax._io import atomic_write_text
     from sc6d_jax.viz import grouped_bar_chart, save_figure
 
+    from sc6d_jax import pretrained
+
     budget = BUDGETS[budget_name]
-    cfg_path = run / "config.json"
-    if not cfg_path.is_file():
-        raise FileNotFoundError(f"{cfg_path}: --run is not a training run directory")
-    obj_ids = json.loads(cfg_path.read_text(encoding="utf-8")).get("stream", {}).get("obj_ids")
+    path = pretrained.check_run(run)  # a run directory or a shipped model's name (builtin, lmo)
+    if (path / "config.json").is_file():
+        config = json.loads((path / "config.json").read_text(encoding="utf-8"))
+    else:
+        config = json.loads((path / "meta.json").read_text(encoding="utf-8"))["config"]
+    obj_ids = config.get("stream", {}).get("obj_ids")
     sizes = tuple(sizes) if sizes else budget.so3_sizes
     out.mkdir(parents=True, exist_ok=True)
-    _check_settings(out, "so3-samples", {"budget": budget_name, "run": str(run.resolve())})
+    _check_settings(out, "so3-samples", {"budget": budget_name,
+                                         "run": str(run) if pretrained.is_name(run) else str(run.resolve())})
     if dataset is None:
         _, dataset = prepare_data(out, budget, obj_ids)
     elif not (dataset / "test_targets_bop19.json").is_file():
@@ -401,7 +406,7 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--rows", default=None, help=f"comma-separated rows (default all: {','.join(ROW_BY_NAME)})")
     a.add_argument("--no-figures", action="store_true", help="no per-run evaluation figures")
     s = sub.add_parser("so3-samples", help="AR and ms per crop by rotation-library size")
-    s.add_argument("--run", type=Path, required=True, help="trained run directory")
+    s.add_argument("--run", type=Path, required=True, help="trained run directory or a shipped model's name (builtin)")
     s.add_argument("--out", type=Path, required=True, help="sweep folder (created; rerun to resume)")
     s.add_argument("--budget", choices=sorted(BUDGETS), default="tiny")
     s.add_argument("--sizes", default=None, help="comma-separated library sizes (tiny: 20000,60000; full: 20k..1.44M)")
