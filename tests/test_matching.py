@@ -29,17 +29,23 @@ def test_blocked_matches_dense(n, block, k):
     assert np.all(np.diff(np.asarray(got.score), axis=1) <= 0)  # best first
 
 
-@pytest.mark.parametrize("k", [1, 4])
-def test_per_object_libraries_match_each_query_against_its_own(k):
+_SMALL = [2, 0, 2, 3, 0, 0, 2]  # 7 queries, object 1 absent
+# 40 queries in shuffled order, per-object counts 0, 1, 9, 17, 13: groups of 8, 16, 32 (and 40)
+_SPREAD = list(np.random.default_rng(5).permutation([1] * 1 + [2] * 9 + [3] * 17 + [4] * 13))
+
+
+@pytest.mark.parametrize("k,objs", [(1, _SMALL), (4, _SMALL), (1, _SPREAD), (3, _SPREAD), (1, [3] * 40)])
+def test_per_object_libraries_match_each_query_against_its_own(k, objs):
     """(O, nb, E, block) libraries: a query sees only its object's library; objects absent from
-    the batch are skipped; results equal the dense reference per object."""
+    the batch are skipped; results equal the dense reference per object, whatever the number
+    of queries per object (grouped by object in static sizes)."""
     from sc6d_jax.inference import match_blocks, pad_library
 
     rng = np.random.default_rng(k)
-    n_obj, n = 4, 1800
+    n_obj, n = 5, 1800
     libs = _unit(rng.normal(size=(n_obj, n, 16))).astype(np.float32)
-    q = _unit(rng.normal(size=(7, 16))).astype(np.float32)
-    obj = np.array([2, 0, 2, 3, 0, 0, 2], np.int32)  # object 1 absent
+    obj = np.asarray(objs, np.int32)
+    q = _unit(rng.normal(size=(len(obj), 16))).astype(np.float32)
     blocks, nv = pad_library(libs, 512)
     assert blocks.shape == (n_obj, 4, 16, 512) and nv == n
     got = match_blocks(q, blocks, n_valid=nv, k=k, tau=0.1, obj_idx=obj)

@@ -13,8 +13,9 @@ reduction, no index bookkeeping); the argmax is then searched again inside each 
 sub-block only (256 rows, gathered per query).
 
 Several objects: ``blocks`` may be ``(O, nb, E, block)``, one library per object; each query
-is matched against its own object's library only, and an object with no query in the batch
-costs nothing (a ``lax.cond`` skips it).
+is matched against its own object's library only, and each library is scanned with only the
+queries of its object (sorted by object, in groups of static power-of-two sizes); an object
+with no query in the batch costs nothing.
 """
 
 from __future__ import annotations
@@ -81,17 +82,56 @@ def _match_blocks(queries, blocks, n_valid: int, k: int, tau, with_prob: bool, o
     obj_idx = jnp.asarray(obj_idx, jnp.int32)
     if n_obj == 1:
         return _match_one(queries, blocks, jnp.int32(0), n_valid, k, tau, with_prob)
-    empty = MatchResult(jnp.zeros((b, k), jnp.int32), jnp.zeros((b, k), jnp.float32), jnp.zeros((b, k), jnp.float32))
-    out = empty
-    for o in range(n_obj):  # static: each object's library is scanned only when a query needs it
-        mine = obj_idx == o
-        r = jax.lax.cond(
-            jnp.any(mine),
-            lambda: _match_one(queries, blocks, jnp.int32(o), n_valid, k, tau, with_prob),
-            lambda: empty,
-        )
-        out = jax.tree.map(lambda a, c: jnp.where(mine[:, None], c, a), out, r)
-    return out
+    return _match_per_object(queries, blocks, obj_idx, n_valid, k, tau, with_prob)
+
+
+def _chunk_sizes(b: int) -> tuple[int, ...]:
+    """Static query-group sizes for per-object matching: 8, 16, ... up to ``b``."""
+    sizes, s = [], 8
+    while s < b:
+        sizes.append(s)
+        s *= 2
+    return tuple(sizes) + (b,)
+
+
+def _match_per_object(queries, blocks, obj_idx, n_valid: int, k: int, tau, with_prob: bool) -> MatchResult:
+    """Each object's library is scanned once, with only that object's queries.
+
+    The queries are sorted by object; object o's run of n_o queries is matched as one group of
+    the smallest static size in :func:`_chunk_sizes` that holds it (at most 2x padding), so a
+    batch spread over many objects costs about one scan of each of their libraries with its own
+    queries, not with the whole batch; an object without queries is skipped.
+    """
+    n_obj, b, e = blocks.shape[0], queries.shape[0], queries.shape[1]
+    sizes = _chunk_sizes(b)
+    order = jnp.argsort(obj_idx, stable=True).astype(jnp.int32)
+    counts = jnp.bincount(obj_idx, length=n_obj).astype(jnp.int32)
+    starts = (jnp.cumsum(counts) - counts).astype(jnp.int32)
+    pad = sizes[-1]
+    q_sorted = jnp.concatenate([queries[order], jnp.zeros((pad, e), queries.dtype)])
+    dest_sorted = jnp.concatenate([order, jnp.full((pad,), b, jnp.int32)])  # b: dropped
+    size_arr = jnp.asarray(sizes, jnp.int32)
+
+    def group(size):
+        def run(o, carry):
+            st, n = starts[o], counts[o]
+            qs = jax.lax.dynamic_slice_in_dim(q_sorted, st, size, axis=0)
+            r = _match_one(qs, blocks, o, n_valid, k, tau, with_prob)
+            dest = jax.lax.dynamic_slice_in_dim(dest_sorted, st, size, axis=0)
+            dest = jnp.where(jnp.arange(size, dtype=jnp.int32) < n, dest, b)
+            return tuple(a.at[dest].set(v, mode="drop") for a, v in zip(carry, r))
+        return run
+
+    branches = [lambda o, carry: carry] + [group(sz) for sz in sizes]
+
+    def body(o, carry):
+        n = counts[o]
+        cls = jnp.where(n == 0, 0, 1 + jnp.sum(size_arr < n))
+        return jax.lax.switch(cls, branches, o, carry)
+
+    init = (jnp.zeros((b, k), jnp.int32), jnp.zeros((b, k), jnp.float32), jnp.zeros((b, k), jnp.float32))
+    index, score, prob = jax.lax.fori_loop(0, n_obj, body, init)
+    return MatchResult(index=index, score=score, prob=prob)
 
 
 def _match_one(queries, blocks, o, n_valid: int, k: int, tau, with_prob: bool) -> MatchResult:
