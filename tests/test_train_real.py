@@ -46,7 +46,7 @@ def test_presets_roundtrip_through_json():
     cpu = preset("cpu")
     assert (cpu.stream.batch_size, cpu.model.crop_size) == (32, 64)
     assert (cpu.optim.lr, cpu.optim.lr_end, cpu.optim.weight_decay) == (1e-3, 1e-5, 1e-4)
-    assert (cpu.steps, cpu.stream.curriculum) == (14_000, 4_000)  # about an hour on 2 cores
+    assert (cpu.steps, cpu.stream.curriculum) == (18_000, 4_000)  # about an hour on 2 cores
     with pytest.raises(ValueError, match="unknown preset 'huge'.*paper, cpu, tiny"):
         preset("huge")
     with pytest.raises(ValueError, match="unknown field"):

@@ -17,7 +17,7 @@ Presets (:func:`preset`):
   K = 1000 depth bins, batch 64, AdamW 5e-4 -> 1e-5 cosine, weight decay 1e-4.
 - ``cpu``: 64x64 crops, batch 32, a one-block-per-stage residual backbone of width 16 with a
   slim shared decoder, Q = 5000 negatives shared by the batch, K = 1000; 18,000 steps: about
-  an hour on two CPU cores (measured 5.3 steps/s with the renderer stream, 6.7 with
+  an hour on two CPU cores (measured 5.4 steps/s with the renderer stream, 5.8 with
   pre-rendered batches, 14 built-in objects; experiments/bench_train.py).
 - ``tiny``: 48x48 crops, 4 residual blocks of width 16 and a slim decoder, batch 16,
   Q = 1000, 64 depth bins, 400 steps (about 30 s on two cores after a ~15 s compile): for
@@ -303,7 +303,8 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # backgrounds and no occluders at first, ramping to the full stream): on the 14 built-in
         # objects, without it the rotation loss stayed at ln(Q+1) for 2,300 steps; with it the
         # offset error fell by 40 % and the rotation loss started falling within 1,800 steps.
-        # 14,000 steps: about an hour on 2 cores (4 steps/s with one renderer worker).  The
+        # 18,000 steps: about an hour on 2 cores (5.2 steps/s with one renderer worker since the
+        # renderer leaves unplaced geoms out of the scene; 14,000 at 4 steps/s before).  The
         # rotation loss falls per crop *of one object*: alone, one object goes 9.2 -> 6.2 in 350
         # steps, 14 together stay at 8.52 for 400 (experiments/diag_learning.py), so an hour is
         # ~1,000 steps' worth of each object.  The learning rate is not the limit: on the easy
@@ -318,7 +319,7 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
             loss=LossConfig(n_negatives=5000, rebase_negatives=False),
             stream=StreamSettings(batch_size=32, curriculum=4000),
             optim=OptimConfig(lr=1e-3, lr_end=1e-5, weight_decay=1e-4, warmup_steps=200),
-            steps=14_000,
+            steps=18_000,
             checkpoint_every=500,
             log_every=20,
         )
