@@ -291,3 +291,16 @@ def test_single_object_mask_from_depth_equals_segmentation(scene_renderer):
         assert np.array_equal(fast.instance, slow.instance)
         assert np.array_equal(fast.mask_full, slow.mask_full)
         assert np.array_equal(fast.rgb, slow.rgb)
+
+
+def test_scene_holds_only_the_placed_geoms(scene_renderer):
+    """Unplaced slots are left out of the MuJoCo scene (each one would cost a draw call), and a
+    slot used in one call and not in the next disappears from the image."""
+    r, _ = scene_renderer
+    box = (2, np.eye(3), np.array([0.0, 0.0, 400.0]))
+    sphere = (1, np.eye(3), np.array([10.0, 0.0, 300.0]))  # in front of the box
+    both = r.render([box, sphere], K_SMALL)
+    assert r._scene.ngeom == 2 and set(np.unique(both.instance)) == {-1, 0, 1}
+    alone = r.render([box], K_SMALL)
+    assert r._scene.ngeom == 1 and set(np.unique(alone.instance)) == {-1, 0}
+    assert alone.mask_visib[0].sum() > both.mask_visib[0].sum()  # the sphere no longer hides it

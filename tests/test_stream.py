@@ -99,3 +99,37 @@ def test_curriculum_starts_plain_and_ends_full(models):
     assert not any(plain(full["rgb"][i], full["mask_visib"][i]) for i in range(6))
     with pytest.raises(ValueError, match="curriculum"):
         StreamConfig(str(models), curriculum=-1)
+
+
+def test_roll_helper_equals_numpy_roll():
+    from sc6d_jax.data._stream import _roll2
+
+    img = np.random.default_rng(0).integers(0, 256, (24, 24, 3), dtype=np.uint8)[:, ::-1]  # a flipped view
+    for dy, dx in [(0, 0), (5, 0), (0, 23), (23, 1), (10, 17)]:
+        assert np.array_equal(_roll2(img, dy, dx), np.roll(img, (dy, dx), axis=(0, 1)))
+
+
+def test_random_rotation_is_a_uniform_rotation():
+    from sc6d_jax.data._scene import random_rotation
+
+    rng = np.random.default_rng(0)
+    R = np.stack([random_rotation(rng) for _ in range(4000)])
+    assert np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max() < 1e-12
+    assert np.all(np.linalg.det(R) > 0.999)
+    # Haar measure: the columns are uniform on the sphere (mean ~0), the angle has mean pi/2 + 2/pi
+    assert np.abs(R.mean(axis=0)).max() < 0.05
+    angle = np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1) / 2, -1, 1))
+    assert abs(angle.mean() - (np.pi / 2 + 2 / np.pi)) < 0.03
+
+
+def test_colour_augment_is_deterministic_and_changes_the_crop():
+    from sc6d_jax.data._augment import colour_augment
+
+    img = np.random.default_rng(1).integers(0, 256, (32, 32, 3), dtype=np.uint8)
+    changed = 0
+    for seed in range(40):  # covers every branch, the seeded cv2 noise included
+        a = colour_augment(np.random.default_rng(seed), img)
+        b = colour_augment(np.random.default_rng(seed), img)
+        assert a.dtype == np.uint8 and a.shape == img.shape and np.array_equal(a, b)
+        changed += not np.array_equal(a, img)
+    assert 20 < changed < 40  # applied with probability 0.8

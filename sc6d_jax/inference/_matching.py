@@ -86,7 +86,10 @@ def _match_blocks(queries, blocks, n_valid: int, k: int, tau, with_prob: bool, o
 
 
 def _chunk_sizes(b: int) -> tuple[int, ...]:
-    """Static query-group sizes for per-object matching: 8, 16, ... up to ``b``."""
+    """Static query-group sizes for per-object matching: 8, 16, ... up to ``b`` (the whole batch
+    only when ``b`` is symbolic, as under jax.export)."""
+    if not isinstance(b, int):
+        return (b,)
     sizes, s = [], 8
     while s < b:
         sizes.append(s)
@@ -110,7 +113,7 @@ def _match_per_object(queries, blocks, obj_idx, n_valid: int, k: int, tau, with_
     pad = sizes[-1]
     q_sorted = jnp.concatenate([queries[order], jnp.zeros((pad, e), queries.dtype)])
     dest_sorted = jnp.concatenate([order, jnp.full((pad,), b, jnp.int32)])  # b: dropped
-    size_arr = jnp.asarray(sizes, jnp.int32)
+    smaller = jnp.asarray(sizes[:-1], jnp.int32)  # concrete; the last size is the batch
 
     def group(size):
         def run(o, carry):
@@ -126,7 +129,7 @@ def _match_per_object(queries, blocks, obj_idx, n_valid: int, k: int, tau, with_
 
     def body(o, carry):
         n = counts[o]
-        cls = jnp.where(n == 0, 0, 1 + jnp.sum(size_arr < n))
+        cls = jnp.where(n == 0, 0, 1 + jnp.sum(smaller < n))  # index of the smallest group >= n
         return jax.lax.switch(cls, branches, o, carry)
 
     init = (jnp.zeros((b, k), jnp.int32), jnp.zeros((b, k), jnp.float32), jnp.zeros((b, k), jnp.float32))
