@@ -133,3 +133,78 @@ def test_colour_augment_is_deterministic_and_changes_the_crop():
         assert a.dtype == np.uint8 and a.shape == img.shape and np.array_equal(a, b)
         changed += not np.array_equal(a, img)
     assert 20 < changed < 40  # applied with probability 0.8
+
+
+def test_workers_return_images_through_shared_memory(models, monkeypatch):
+    """Workers hand the image-sized arrays back through a ring of shared-memory slots; more
+    batches than slots come out equal to the in-process batches, the pipe fallback (for a
+    small /dev/shm) gives the same, and close() removes the shared memory."""
+    from multiprocessing import shared_memory
+
+    from sc6d_jax.data import _stream
+
+    cfg = StreamConfig(str(models), crop_size=32, batch_size=3, workers=1, seed=3)
+    with CropStream(StreamConfig(str(models), crop_size=32, batch_size=3, workers=0, seed=3)) as s:
+        want = [next(s) for _ in range(5)]
+    s = CropStream(cfg)
+    assert s._ring is not None and s._ring.n == 3
+    name = s._ring.shm.name
+    got = [next(s) for _ in range(5)]  # 5 batches through 3 slots
+    s.close()
+    with pytest.raises(FileNotFoundError):
+        shared_memory.SharedMemory(name=name)
+    monkeypatch.setattr(_stream._Ring, "fits", staticmethod(lambda cfg, n: False))
+    with CropStream(cfg) as s:
+        assert s._ring is None
+        piped = [next(s) for _ in range(2)]
+    for w, g in zip(want, got):
+        assert set(w) == set(g)
+        for k in w:
+            np.testing.assert_array_equal(w[k], g[k])
+    for w, g in zip(want, piped):
+        np.testing.assert_array_equal(w["rgb"], g["rgb"])
+        np.testing.assert_array_equal(w["pe"], g["pe"])
+
+
+def test_workers_end_with_a_killed_parent(models, tmp_path):
+    """A training process killed with SIGKILL leaves no workers and no shared memory behind."""
+    import os
+    import subprocess
+    import sys
+    import time
+    from multiprocessing import shared_memory
+
+    script = tmp_path / "killed.py"
+    script.write_text(
+        "import os, signal\n"
+        "from sc6d_jax.data import CropStream, StreamConfig\n"
+        "if __name__ == '__main__':\n"
+        f"    s = CropStream(StreamConfig({str(models)!r}, crop_size=32, batch_size=2, workers=2))\n"
+        "    next(s)\n"
+        "    print(s._ring.shm.name, *s._pool._processes, flush=True)\n"
+        "    os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == -9, out.stderr
+    name, *pids = out.stdout.split()
+    assert len(pids) == 2
+
+    def alive(pid: int) -> bool:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        return True
+
+    deadline = time.time() + 20
+    while any(alive(int(p)) for p in pids) and time.time() < deadline:
+        time.sleep(0.2)
+    assert not any(alive(int(p)) for p in pids), "stream workers outlived their parent"
+    while time.time() < deadline:
+        try:
+            shared_memory.SharedMemory(name=name).close()
+        except FileNotFoundError:
+            break
+        time.sleep(0.2)
+    else:
+        raise AssertionError(f"shared memory {name} outlived the stream's processes")
