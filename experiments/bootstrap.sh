@@ -34,7 +34,10 @@ fi
 
 # --- system packages -------------------------------------------------------------------
 need_pkgs=()
-have_lib() { ldconfig -p 2>/dev/null | grep -q "$1"; }
+# ldconfig's list is read once: `ldconfig -p | grep -q` under pipefail fails at random (grep
+# quits at the first match, ldconfig dies of SIGPIPE) and reinstalled packages that were there.
+LDCACHE="$(ldconfig -p 2>/dev/null || true)"
+have_lib() { [[ "$LDCACHE" == *"$1"* ]]; }
 have_lib 'libEGL.so.1 '      || need_pkgs+=(libegl1)
 have_lib 'libEGL_mesa.so.0'  || need_pkgs+=(libegl-mesa0)
 have_lib 'libOpenGL.so.0'    || need_pkgs+=(libopengl0)
