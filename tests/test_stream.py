@@ -153,7 +153,7 @@ def test_workers_return_images_through_shared_memory(models, monkeypatch):
     s.close()
     with pytest.raises(FileNotFoundError):
         shared_memory.SharedMemory(name=name)
-    monkeypatch.setattr(_stream._Ring, "fits", staticmethod(lambda cfg, n: False))
+    monkeypatch.setattr(_stream._Ring, "fits", classmethod(lambda cls, cfg, n: False))
     with CropStream(cfg) as s:
         assert s._ring is None
         piped = [next(s) for _ in range(2)]

@@ -18,8 +18,8 @@ import os
 import threading
 import time
 from collections import deque
-from multiprocessing import shared_memory
 from dataclasses import dataclass, field
+from multiprocessing import shared_memory
 from pathlib import Path
 from typing import Iterator
 
@@ -269,42 +269,42 @@ class _Ring:
     """``n`` slots of shared memory, each holding one batch's image-sized arrays."""
 
     def __init__(self, cfg: StreamConfig, n: int, name: str | None = None) -> None:
-        B, S = cfg.batch_size, cfg.crop_size
-        self.specs = [  # key, shape, dtype, offset in a slot
-            ("rgb", (B, S, S, 3), np.dtype(np.uint8)),
-            ("pe", (B, S, S, 2), np.dtype(np.float32)),
-            ("mask_visib", (B, S, S), np.dtype(np.uint8)),
-        ]
-        self.offsets, off = [], 0
-        for _, shape, dt in self.specs:
-            self.offsets.append(off)
-            off += -(-int(np.prod(shape)) * dt.itemsize // 64) * 64
-        self.slot_bytes, self.n = off, n
+        self.layout, self.slot_bytes = self.slot_layout(cfg)
+        self.n = n
         if name is None:
-            self.shm = shared_memory.SharedMemory(create=True, size=n * off)
+            self.shm = shared_memory.SharedMemory(create=True, size=n * self.slot_bytes)
             self.owner = True
         else:
             self.shm = shared_memory.SharedMemory(name=name)
             self.owner = False
 
     @staticmethod
-    def fits(cfg: StreamConfig, n: int) -> bool:
+    def slot_layout(cfg: StreamConfig) -> tuple[list[tuple[str, tuple[int, ...], np.dtype, int]], int]:
+        """[(key, shape, dtype, byte offset in a slot)] and the slot's size (64-byte aligned)."""
+        B, S = cfg.batch_size, cfg.crop_size
+        layout, off = [], 0
+        for key, shape, dt in (
+            ("rgb", (B, S, S, 3), np.dtype(np.uint8)),
+            ("pe", (B, S, S, 2), np.dtype(np.float32)),
+            ("mask_visib", (B, S, S), np.dtype(np.uint8)),
+        ):
+            layout.append((key, shape, dt, off))
+            off += -(-int(np.prod(shape)) * dt.itemsize // 64) * 64
+        return layout, off
+
+    @classmethod
+    def fits(cls, cfg: StreamConfig, n: int) -> bool:
         """Whether n slots fit in half the free shared memory (Docker's /dev/shm is 64 MB by
         default; writing past a full tmpfs would kill the worker with SIGBUS)."""
-        B, S = cfg.batch_size, cfg.crop_size
-        need = n * B * S * S * (3 + 8 + 1) + 64 * 3 * n
         try:
             st = os.statvfs("/dev/shm")
         except OSError:  # no /dev/shm (not Linux): let SharedMemory decide
             return True
-        return need <= st.f_bavail * st.f_frsize // 2
+        return n * cls.slot_layout(cfg)[1] <= st.f_bavail * st.f_frsize // 2
 
     def views(self, slot: int) -> dict[str, np.ndarray]:
         base = slot * self.slot_bytes
-        return {
-            k: np.ndarray(shape, dt, buffer=self.shm.buf, offset=base + o)
-            for (k, shape, dt), o in zip(self.specs, self.offsets)
-        }
+        return {k: np.ndarray(shape, dt, buffer=self.shm.buf, offset=base + o) for k, shape, dt, o in self.layout}
 
     def close(self) -> None:
         self.shm.close()
