@@ -6,7 +6,8 @@
 4. with a model (the shipped ``builtin`` model by default, ``--run RUN_DIR`` for another, or
    ``--train`` to train one with the ``cpu`` preset first): predicts every target from the
    ground-truth visible boxes, evaluates with the BOP19 metrics, prints the AR table (overall,
-   symmetric, asymmetric objects) and writes pictures: overlays of the estimated poses,
+   symmetric, asymmetric objects) and the pose-error breakdown (median rotation, depth and
+   centre errors) and writes pictures: overlays of the estimated poses,
    rotation distributions on the sphere and AR per object.
 
 Everything goes under ``--out`` (default ``sc6d-demo/``).
@@ -107,6 +108,10 @@ def main(argv: list[str]) -> int:
     scores = json.loads((out / "scores.json").read_text())
     groups = _ar_groups(scores, set(SYMMETRIC_IDS))
     print(f"\nAR symmetric objects: {groups['symmetric']:.3f}   AR asymmetric objects: {groups['asymmetric']:.3f}")
+    if scores.get("breakdown"):
+        from sc6d_jax.metrics import format_breakdown_line
+
+        print(format_breakdown_line(scores["breakdown"]["overall"]))
     from sc6d_jax.viz import write_eval_figures
 
     _step(f"pictures -> {out / 'figures'}")

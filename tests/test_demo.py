@@ -43,8 +43,10 @@ def test_demo_with_the_shipped_model(tmp_path, capsys):
     assert rc == 0
     text = capsys.readouterr().out
     assert "AR symmetric objects" in text and "AR asymmetric objects" in text
+    assert "pose errors (" in text and "rotation median" in text  # the overall breakdown line
     scores = json.loads((out / "scores.json").read_text())
     assert 0.0 <= scores["bop19_average_recall"] <= 1.0
+    assert scores["breakdown"]["overall"]["n"] == scores["counts"]["targets"]
     pngs = sorted(p.name for p in (out / "figures").glob("*.png"))
     assert any(n.startswith("poses_") for n in pngs) and any(n.startswith("rotdist_") for n in pngs)
     assert "ar_per_object.png" in pngs

@@ -141,6 +141,9 @@ def test_eval_cli_lmo_ground_truth_gives_ar_one(shared_data, tmp_path, capsys):
     assert s["bop19_average_recall_vsd"] is None and s["vsd_available"] is False
     assert "no depth" in s["vsd_skipped_reason"]
     assert all(v["ar"] == 1.0 for v in s["per_object"].values())
+    bd = s["breakdown"]["overall"]  # the ground truth itself: no error, no miss
+    assert bd["n"] == s["counts"]["targets"] and bd["missed"] == 0
+    assert bd["rot_median_deg"] < 1e-3 and bd["rot_under_5"] == 1.0 and bd["depth_under_2pct"] == 1.0
     printed = capsys.readouterr().out
     assert "VSD skipped" in printed and "all" in printed
 

@@ -4,7 +4,10 @@ Public surface: the pose errors ``re``, ``te``, ``add``, ``adi``, ``mssd``, ``ms
 (the toolkit's arguments, mm, numpy in, float out); ``symmetry_transformations`` and
 ``symmetry_coverage``; ``evaluate_bop19`` (a BOP dataset + estimates -> scores with the toolkit's
 key names), ``evaluate_images`` / ``compute_errors`` / ``score_errors`` (in-memory pieces);
-``VsdRenderer`` (depth for VSD in the toolkit's pixel convention); the threshold grids.
+``VsdRenderer`` (depth for VSD in the toolkit's pixel convention); the threshold grids; the
+pose-error breakdown (``rotation_error_deg``, ``pose_errors``, ``breakdown_errors``,
+``summarize_breakdown``, ``symmetry_rotations``, ``format_breakdown_line``: median rotation,
+relative depth and projected-centre errors, stored by ``evaluate_bop19`` under ``breakdown``).
 The ``sc6d eval`` command lives in ``sc6d_jax.metrics.cli``.
 """
 
@@ -26,6 +29,15 @@ from sc6d_jax.metrics._bop19 import (
     make_object_model,
     score_errors,
 )
+from sc6d_jax.metrics._breakdown import (
+    MISS,
+    breakdown_errors,
+    format_breakdown_line,
+    pose_errors,
+    rotation_error_deg,
+    summarize_breakdown,
+    symmetry_rotations,
+)
 from sc6d_jax.metrics._evaluate import evaluate_bop19, load_eval_images, load_object_models
 from sc6d_jax.metrics._pose_error import (
     add,
@@ -45,6 +57,7 @@ from sc6d_jax.metrics._vsd_renderer import VsdRenderer
 
 __all__ = [
     "MAX_SYM_DISC_STEP",
+    "MISS",
     "MSPD_THRESHOLDS",
     "MSSD_THRESHOLDS",
     "VISIB_GT_MIN",
@@ -59,20 +72,26 @@ __all__ = [
     "add",
     "adi",
     "average_time_per_image",
+    "breakdown_errors",
     "compute_errors",
     "depth_to_distance",
     "evaluate_bop19",
     "evaluate_images",
+    "format_breakdown_line",
     "load_eval_images",
     "load_object_models",
     "make_object_model",
     "mspd",
     "mssd",
     "overlapping_sphere_projections",
+    "pose_errors",
     "project_pts",
     "re",
+    "rotation_error_deg",
     "score_errors",
+    "summarize_breakdown",
     "symmetry_coverage",
+    "symmetry_rotations",
     "symmetry_transformations",
     "te",
     "transform_pts",

@@ -356,7 +356,9 @@ def evaluate_images(
     """BOP19 scores of in-memory images and estimates (see :func:`score_errors` for the keys).
 
     VSD is evaluated when ``renderer`` is given and every image has depth; otherwise it is
-    skipped and flagged.
+    skipped and flagged. The scores also hold ``breakdown``: the pose-error breakdown of the same
+    targets (rotation, relative depth and projected-centre errors; ``sc6d_jax.metrics._breakdown``,
+    :func:`summarize_breakdown`), which does not enter any ``bop19_*`` number.
     """
     vsd_ok = renderer is not None and len(images) > 0 and all(img.depth is not None for img in images)
     errs = compute_errors(
@@ -367,6 +369,9 @@ def evaluate_images(
     out["bop19_average_time_per_image"] = average_time_per_image(estimates) if estimates and all(
         hasattr(e, "time") or (isinstance(e, Mapping) and "time" in e) for e in estimates
     ) else -1.0
+    from sc6d_jax.metrics._breakdown import breakdown_errors, summarize_breakdown  # imports this module
+
+    out["breakdown"] = summarize_breakdown(breakdown_errors(images, estimates, models, visib_gt_min=visib_gt_min))
     return out
 
 

@@ -105,7 +105,9 @@ def evaluate_bop19(
         dict with ``bop19_average_recall``, ``bop19_average_recall_vsd`` (None when skipped),
         ``bop19_average_recall_mssd``, ``bop19_average_recall_mspd``,
         ``bop19_average_time_per_image``, ``vsd_available``, ``vsd_skipped_reason`` (when
-        skipped), ``recalls``, ``per_object``, ``counts``.
+        skipped), ``recalls``, ``per_object``, ``counts`` and ``breakdown`` (median rotation,
+        relative depth and projected-centre errors and the fractions under thresholds, overall
+        and per object: :func:`sc6d_jax.metrics.summarize_breakdown`).
     """
     from sc6d_jax.bop import BopDataset
 

@@ -5,7 +5,11 @@
 
 Prints a table (overall and per object) and writes the scores as JSON with the BOP toolkit's key
 names (bop19_average_recall, bop19_average_recall_vsd/_mssd/_mspd, bop19_average_time_per_image)
-plus per-object recalls. VSD needs depth images; where the dataset has none it is skipped, the
+plus per-object recalls. It also prints and writes (key ``breakdown``) the pose-error breakdown
+of the same targets (``sc6d_jax.metrics.summarize_breakdown``): median symmetry-aware rotation
+error [deg], median relative depth error, median projected-centre error [px], the fractions
+under 5/10/20 deg and 2/5 % depth, overall and per object; a target without an estimate counts
+as a miss (180 deg, inf), and an infinite median is written as null. VSD needs depth images; where the dataset has none it is skipped, the
 AR is the mean of AR_MSSD and AR_MSPD, and the output says so.
 
 With ``--figures DIR`` it then writes pictures (``sc6d_jax.viz.write_eval_figures``): overlays of
@@ -47,7 +51,52 @@ def format_table(scores: dict[str, Any]) -> str:
     t = scores.get("bop19_average_time_per_image", -1.0)
     if t is not None and t >= 0:
         lines.append(f"average time per image: {t:.4f} s")
+    if scores.get("breakdown"):
+        lines.append("")
+        lines.append(format_breakdown_table(scores["breakdown"]))
     return "\n".join(lines)
+
+
+def _bd_num(v: Any, scale: float = 1.0) -> str:
+    return "inf" if v is None or not math.isfinite(float(v)) else f"{float(v) * scale:.1f}"
+
+
+def _bd_pct(v: Any) -> str:
+    return "-" if v is None else f"{100.0 * float(v):.0f}"
+
+
+def format_breakdown_table(breakdown: dict[str, Any]) -> str:
+    """The pose-error breakdown table of ``sc6d eval``: per object and overall.
+
+    Columns: targets, targets without an estimate, median rotation error [deg] and % under 5 / 10 /
+    20 deg, median relative depth error [%] and % under 2 / 5 %, median projected-centre error [px].
+    """
+    head = (f"{'object':>8}  {'targets':>7}  {'missed':>6}  {'rot_med':>7}  {'<5deg':>5}  {'<10deg':>6}  "
+            f"{'<20deg':>6}  {'depth_med':>9}  {'<2%':>4}  {'<5%':>4}  {'centre_med':>10}")
+    lines = ["pose-error breakdown (medians; % of targets under the thresholds; a target without an "
+             "estimate counts as 180 deg, inf depth and centre errors)", head]
+
+    def row(name: str, d: dict[str, Any]) -> str:
+        return (f"{name:>8}  {d['n']:>7}  {d.get('missed', 0):>6}  {_bd_num(d['rot_median_deg']):>7}  "
+                f"{_bd_pct(d['rot_under_5']):>5}  {_bd_pct(d['rot_under_10']):>6}  {_bd_pct(d['rot_under_20']):>6}  "
+                f"{_bd_num(d['depth_rel_median'], 100.0) + ' %':>9}  {_bd_pct(d['depth_under_2pct']):>4}  "
+                f"{_bd_pct(d['depth_under_5pct']):>4}  {_bd_num(d['centre_median_px']) + ' px':>10}")
+
+    for obj_id, d in breakdown["per_object"].items():
+        lines.append(row(str(obj_id), d))
+    lines.append(row("all", breakdown["overall"]))
+    return "\n".join(lines)
+
+
+def _finite_or_none(v: Any) -> Any:
+    """Non-finite floats -> None (JSON has no inf), recursively through dicts and lists."""
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    if isinstance(v, dict):
+        return {k: _finite_or_none(x) for k, x in v.items()}
+    if isinstance(v, list):
+        return [_finite_or_none(x) for x in v]
+    return v
 
 
 def _jsonable(scores: dict[str, Any]) -> dict[str, Any]:
@@ -56,6 +105,11 @@ def _jsonable(scores: dict[str, Any]) -> dict[str, Any]:
     for k, v in list(out.items()):
         if isinstance(v, float) and not math.isfinite(v):
             out[k] = None
+    if isinstance(scores.get("breakdown"), dict):
+        bd = scores["breakdown"]
+        out["breakdown"] = _finite_or_none(
+            {"overall": bd["overall"], "per_object": {str(k): v for k, v in bd["per_object"].items()}}
+        )
     return out
 
 

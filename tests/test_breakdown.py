@@ -1,0 +1,243 @@
+"""Pose-error breakdown (sc6d_jax.metrics._breakdown): hand-made poses with known errors, symmetric
+objects, misses, the summary, the scores of evaluate_images and ``sc6d eval`` end to end."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from sc6d_jax.metrics import (
+    MISS,
+    EvalImage,
+    GroundTruth,
+    breakdown_errors,
+    evaluate_images,
+    format_breakdown_line,
+    make_object_model,
+    pose_errors,
+    rotation_error_deg,
+    summarize_breakdown,
+    symmetry_rotations,
+)
+
+K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
+BOX_INFO = {  # 180-degree symmetries about x, y, z
+    "diameter": 108.0,
+    "symmetries_discrete": [
+        [1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1],
+        [-1, 0, 0, 0, 0, 1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1],
+        [-1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1],
+    ],
+}
+CYL_INFO = {"diameter": 116.6, "symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]}
+
+
+def rot(axis: str, deg: float) -> np.ndarray:
+    return Rotation.from_euler(axis, deg, degrees=True).as_matrix()
+
+
+R_GT = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+T_GT = np.array([10.0, -20.0, 600.0])
+
+
+# ----------------------------------------------------------------------------- rotation
+@pytest.mark.parametrize("axis,deg", [("x", 30.0), ("y", 5.0), ("z", 179.0), ("x", 1e-5), ("y", 180.0)])
+def test_rotation_error_known_angle(axis, deg):
+    assert rotation_error_deg(R_GT @ rot(axis, deg), R_GT) == pytest.approx(deg, abs=1e-7)
+    assert rotation_error_deg(R_GT, R_GT) == 0.0
+    # the error is about the object's own axes: right-multiplied like R_gt @ R_s, and symmetric
+    assert rotation_error_deg(R_GT, R_GT @ rot(axis, deg), None) == pytest.approx(deg, abs=1e-7)
+
+
+def test_rotation_error_continuous_symmetry_within_the_step():
+    Rs = symmetry_rotations(CYL_INFO, 0.01)
+    n = int(np.ceil(np.pi / 0.01))
+    assert Rs.shape == (n, 3, 3)
+    step = 360.0 / n
+    for a in (37.3, 90.0, 200.0, 359.0):
+        e = rotation_error_deg(R_GT @ rot("z", a), R_GT, Rs)
+        assert e <= step / 2 + 1e-9
+        assert rotation_error_deg(R_GT @ rot("z", a), R_GT) == pytest.approx(min(a, 360 - a), abs=1e-7)
+    # a tilt of the axis is not hidden by the symmetry: 20 deg about x after any spin about z
+    assert rotation_error_deg(R_GT @ rot("z", 123.0) @ rot("x", 20.0), R_GT, Rs) == pytest.approx(20.0, abs=step)
+
+
+def test_rotation_error_discrete_180_symmetry():
+    Rs = symmetry_rotations(BOX_INFO)
+    assert Rs.shape == (4, 3, 3)
+    for axis in "xyz":
+        assert rotation_error_deg(R_GT @ rot(axis, 180.0), R_GT, Rs) == pytest.approx(0.0, abs=1e-6)
+        assert rotation_error_deg(R_GT @ rot(axis, 180.0), R_GT) == pytest.approx(180.0, abs=1e-6)
+    # 170 deg about z is 10 deg from the z flip
+    assert rotation_error_deg(R_GT @ rot("z", 170.0), R_GT, Rs) == pytest.approx(10.0, abs=1e-7)
+    # a 90-degree turn about z is not a symmetry of the box
+    assert rotation_error_deg(R_GT @ rot("z", 90.0), R_GT, Rs) == pytest.approx(90.0, abs=1e-7)
+
+
+def test_rotation_error_rejects_bad_input():
+    with pytest.raises(ValueError, match="R_est"):
+        rotation_error_deg(np.eye(2), R_GT)
+    with pytest.raises(ValueError, match="R_gt must be finite"):
+        rotation_error_deg(R_GT, np.full((3, 3), np.nan))
+    with pytest.raises(ValueError, match="sym_rotations"):
+        rotation_error_deg(R_GT, R_GT, np.zeros((0, 3, 3)))
+    with pytest.raises(ValueError, match="sym_rotations"):
+        rotation_error_deg(R_GT, R_GT, np.zeros((2, 3)))
+
+
+# ----------------------------------------------------------------------------- pose errors
+def test_pose_errors_depth_and_centre():
+    e = pose_errors(R_GT, T_GT * np.array([1.0, 1.0, 1.05]), R_GT, T_GT, K)
+    assert e["rot_deg"] == 0.0
+    assert e["depth_rel"] == pytest.approx(0.05, abs=1e-12)
+    # the centre moves towards the principal point: (u - cx) scales by 1/1.05
+    u, v = 600.0 * 10.0 / 600.0, 600.0 * -20.0 / 600.0
+    assert e["centre_px"] == pytest.approx(math.hypot(u, v) * (1 - 1 / 1.05), abs=1e-9)
+    # a fronto-parallel shift of 6 mm at 600 mm with f = 600 is 6 px; 8 mm down -> 10 px in all
+    e = pose_errors(R_GT, T_GT + [6.0, 8.0, 0.0], R_GT, T_GT, K)
+    assert e["centre_px"] == pytest.approx(10.0, abs=1e-9) and e["depth_rel"] == 0.0
+    assert pose_errors(R_GT @ rot("x", 30.0), T_GT, R_GT, T_GT, K)["rot_deg"] == pytest.approx(30.0, abs=1e-9)
+    # an estimate behind the camera has no projected centre
+    assert pose_errors(R_GT, [0.0, 0.0, -5.0], R_GT, T_GT, K)["centre_px"] == math.inf
+    with pytest.raises(ValueError, match="t_gt_z > 0"):
+        pose_errors(R_GT, T_GT, R_GT, [0.0, 0.0, 0.0], K)
+    with pytest.raises(ValueError, match="t_est"):
+        pose_errors(R_GT, [1.0, 2.0], R_GT, T_GT, K)
+    with pytest.raises(ValueError, match="K"):
+        pose_errors(R_GT, T_GT, R_GT, T_GT, np.eye(2))
+
+
+# ----------------------------------------------------------------------------- pairing
+class Est:
+    def __init__(self, obj_id, score, R, t, scene_id=1, im_id=0):
+        self.scene_id, self.im_id, self.obj_id, self.score, self.R, self.t = (
+            scene_id, im_id, obj_id, score, np.asarray(R), np.asarray(t, dtype=np.float64))
+
+
+def _models():
+    pts = np.random.default_rng(0).uniform(-40, 40, (100, 3))
+    return {1: make_object_model(1, {"diameter": 100.0}, pts), 2: make_object_model(2, CYL_INFO, pts)}
+
+
+def test_breakdown_errors_pairing_and_misses():
+    t2 = T_GT + [200.0, 0.0, 0.0]
+    gts = [GroundTruth(1, R_GT, T_GT, 1.0), GroundTruth(1, R_GT, t2, 1.0),
+           GroundTruth(2, R_GT, T_GT + [0, 150.0, 0], 0.5),
+           GroundTruth(1, R_GT, T_GT + [0, -150.0, 0], 0.05)]  # too occluded: not a target
+    img = EvalImage(1, 0, K, 640, 480, gts, {1: 2, 2: 1})
+    ests = [
+        Est(1, 0.9, R_GT @ rot("x", 30.0), t2 + [0, 0, 6.0]),  # best score: takes GT 1 (nearest)
+        Est(1, 0.8, R_GT, T_GT * [1, 1, 1.05]),  # then GT 0
+        Est(1, 0.1, R_GT, T_GT),  # beyond inst_count 2: ignored
+    ]
+    recs = breakdown_errors([img], ests, _models())
+    assert [(r["obj_id"], r["gt_id"]) for r in recs] == [(1, 0), (1, 1), (2, 2)]
+    r0, r1, r2 = recs
+    assert r1["est_id"] == 0 and r1["rot_deg"] == pytest.approx(30.0) and r1["depth_rel"] == pytest.approx(0.01)
+    assert r0["est_id"] == 1 and r0["rot_deg"] == 0.0 and r0["depth_rel"] == pytest.approx(0.05)
+    # object 2 has no estimate: a miss
+    assert r2["missed"] and r2["est_id"] is None and r2["score"] is None
+    assert (r2["rot_deg"], r2["depth_rel"], r2["centre_px"]) == (180.0, math.inf, math.inf) == tuple(MISS.values())
+    # one estimate for two GTs: the nearer is paired, the other is a miss
+    recs = breakdown_errors([img], [Est(1, 0.5, R_GT, t2)], _models())
+    assert [r["missed"] for r in recs] == [True, False, True]
+
+
+def test_evaluate_images_adds_breakdown_and_keeps_bop19_keys():
+    img = EvalImage(1, 0, K, 640, 480, [GroundTruth(2, R_GT, T_GT, 1.0)], {2: 1})
+    models = _models()
+    est = [Est(2, 1.0, R_GT @ rot("z", 77.0), T_GT)]  # spun about the cylinder axis: correct
+    s = evaluate_images([img], est, models)
+    assert s["bop19_average_recall"] == 1.0
+    b = s["breakdown"]
+    assert b["overall"]["n"] == 1 and b["overall"]["rot_median_deg"] <= 0.5 * 360.0 / 315 + 1e-9  # half a step
+    assert b["overall"]["rot_under_5"] == 1.0 and list(b["per_object"]) == [2]
+    s_no = evaluate_images([img], [], models)
+    assert s_no["breakdown"]["overall"]["missed"] == 1 and s_no["breakdown"]["overall"]["rot_median_deg"] == 180.0
+
+
+# ----------------------------------------------------------------------------- summary
+def test_summarize_breakdown_medians_and_fractions():
+    per = [
+        {"obj_id": 1, "rot_deg": 3.0, "depth_rel": 0.01, "centre_px": 1.0},
+        {"obj_id": 1, "rot_deg": 8.0, "depth_rel": 0.03, "centre_px": 2.0},
+        {"obj_id": 1, "rot_deg": 15.0, "depth_rel": 0.10, "centre_px": 5.0},
+        {"obj_id": 2, "rot_deg": 4.0, "depth_rel": 0.02, "centre_px": 3.0},
+        {"obj_id": 2, "missed": True, **MISS},
+    ]
+    s = summarize_breakdown(per)
+    o = s["overall"]
+    assert o["n"] == 5 and o["missed"] == 1
+    assert o["rot_median_deg"] == 8.0 and o["depth_rel_median"] == 0.03 and o["centre_median_px"] == 3.0
+    assert o["rot_under_5"] == pytest.approx(2 / 5) and o["rot_under_10"] == pytest.approx(3 / 5)
+    assert o["rot_under_20"] == pytest.approx(4 / 5)
+    assert o["depth_under_2pct"] == pytest.approx(1 / 5)  # 0.02 is not strictly below 2 %
+    assert o["depth_under_5pct"] == pytest.approx(3 / 5)
+    assert list(s["per_object"]) == [1, 2]
+    p1, p2 = s["per_object"][1], s["per_object"][2]
+    assert p1["n"] == 3 and p1["rot_median_deg"] == 8.0 and p1["missed"] == 0
+    assert p2["rot_median_deg"] == 92.0 and p2["depth_rel_median"] == math.inf  # half missed
+    assert set(o) == set(p1) >= {"n", "rot_median_deg", "depth_rel_median", "centre_median_px", "rot_under_5",
+                                  "rot_under_10", "rot_under_20", "depth_under_2pct", "depth_under_5pct"}
+    empty = summarize_breakdown([])
+    assert empty["overall"]["n"] == 0 and empty["overall"]["rot_median_deg"] is None and empty["per_object"] == {}
+    line = format_breakdown_line(o)
+    assert "rotation median 8.0 deg" in line and "depth median 3.0 %" in line and "40/60/80 %" in line
+    with pytest.raises(ValueError, match=r"per_target\[0\] has no 'centre_px'"):
+        summarize_breakdown([{"obj_id": 1, "rot_deg": 1.0, "depth_rel": 0.1}])
+    with pytest.raises(ValueError, match="non-negative"):
+        summarize_breakdown([{"obj_id": 1, "rot_deg": float("nan"), "depth_rel": 0.1, "centre_px": 1.0}])
+
+
+# ----------------------------------------------------------------------------- sc6d eval
+def test_eval_cli_breakdown_on_a_rendered_dataset(models, tmp_path, capsys):
+    """A tiny rendered dataset, the ground truth as estimates with known perturbations: per image
+    x 1.06 in depth for the first target, 30 deg about x for the second (at least 30 deg for every
+    built-in object: no symmetry of theirs is closer), the rest exact, and one target left without
+    an estimate."""
+    from sc6d_jax.bop import BopDataset, PoseEstimate, write_results_csv
+    from sc6d_jax.metrics.cli import main
+    from sc6d_jax.render._dataset import DatasetSpec, render_dataset
+
+    root = render_dataset(models, tmp_path / "ds", DatasetSpec(scenes=1, images_per_scene=2, objects_per_image=4,
+                                                               width=160, height=120, seed=5), progress=False)
+    ds = BopDataset(root)
+    ests, n, n_depth, n_rot, dropped = [], 0, 0, 0, None
+    for scene_id, im_id in sorted({(t.scene_id, t.im_id) for t in ds.targets()}):
+        targets = {t.obj_id for t in ds.targets() if (t.scene_id, t.im_id) == (scene_id, im_id)}
+        k = 0
+        for g, inf in zip(ds.scene_gt(scene_id)[im_id], ds.scene_gt_info(scene_id)[im_id]):
+            if g.obj_id not in targets or inf.visib_fract < 0.1:
+                continue
+            n += 1
+            R, t = g.R, g.t.copy()
+            if k == 0:
+                t, n_depth = t * np.array([1.0, 1.0, 1.06]), n_depth + 1
+            elif k == 1:
+                R, n_rot = R @ rot("x", 30.0), n_rot + 1
+            elif dropped is None:
+                dropped, k = g.obj_id, k + 1
+                continue
+            ests.append(PoseEstimate(scene_id, im_id, g.obj_id, 1.0, R, t, 0.1))
+            k += 1
+    assert n >= 6 and dropped is not None and n_rot >= 1
+    csv = write_results_csv(tmp_path / "gt_ds-test.csv", ests)
+    out = tmp_path / "scores.json"
+    assert main(["--dataset", str(root), "--results", str(csv), "--out", str(out), "--no-vsd", "--no-progress"]) == 0
+    s = json.loads(out.read_text())
+    b = s["breakdown"]["overall"]
+    assert b["n"] == n == s["counts"]["targets"] and b["missed"] == 1
+    assert b["rot_median_deg"] < 1e-3 and b["centre_median_px"] < 1e-3
+    assert b["rot_under_5"] == b["rot_under_20"] == pytest.approx((n - n_rot - 1) / n)
+    assert b["depth_under_5pct"] == pytest.approx((n - n_depth - 1) / n)
+    assert set(s["breakdown"]["per_object"]) == set(s["per_object"])
+    missed = s["breakdown"]["per_object"][str(dropped)]
+    assert missed["missed"] == 1
+    if missed["n"] == 1:
+        assert missed["depth_rel_median"] is None  # inf is written as null
+    printed = capsys.readouterr().out
+    assert "pose-error breakdown" in printed and "rot_med" in printed
