@@ -48,7 +48,7 @@ class DatasetSpec:
 
 
 def _background(rng: np.random.Generator, w: int, h: int) -> np.ndarray:
-    from sc6d_jax.data import random_background
+    from sc6d_jax.backgrounds import random_background
 
     side = max(w, h)
     big = random_background(rng, min(side, 512))
