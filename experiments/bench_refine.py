@@ -44,13 +44,13 @@ def main(argv: list[str]) -> int:
     import jax
     import jax.numpy as jnp
 
+    from sc6d_jax.checkpoint import load_checkpoint
     from sc6d_jax.data import CropStream, StreamConfig
     from sc6d_jax.geometry import geodesic_angle, so3_grid
     from sc6d_jax.inference import match, refine_rotations
     from sc6d_jax.inference._library import library_grid
     from sc6d_jax.model import apply, encode_rotations
     from sc6d_jax.pretrained import check_run
-    from sc6d_jax.train import load_checkpoint
 
     params, cfg = load_checkpoint(check_run(a.run))
     params = jax.tree.map(jnp.asarray, params)

@@ -134,7 +134,7 @@ def run_info(run: str | Path) -> RunInfo:
     path, _ = pretrained.resolve(run)  # FileNotFoundError naming what is shipped
     path = Path(path)
     if (path / "config.json").is_file():
-        from sc6d_jax.train.checkpoint import checkpoint_dirs
+        from sc6d_jax.checkpoint import checkpoint_dirs
 
         cfg = json.loads((path / "config.json").read_text(encoding="utf-8"))
         found = checkpoint_dirs(path)
@@ -178,7 +178,7 @@ def train_stage(out: Path, data: Path, budget_name: str, steps: int | None, work
     _save_record(out, rec)
     target = steps if steps is not None else budget.steps
     if (run_dir / "config.json").is_file():
-        from sc6d_jax.train.checkpoint import checkpoint_dirs
+        from sc6d_jax.checkpoint import checkpoint_dirs
 
         cfg_steps = json.loads((run_dir / "config.json").read_text(encoding="utf-8")).get("steps")
         found = checkpoint_dirs(run_dir)

@@ -250,7 +250,7 @@ def _training_finished(run_dir: Path) -> bool:
     cfg_path = run_dir / "config.json"
     if not cfg_path.is_file():
         return False
-    from sc6d_jax.train.checkpoint import checkpoint_dirs
+    from sc6d_jax.checkpoint import checkpoint_dirs
 
     found = checkpoint_dirs(run_dir)
     steps = json.loads(cfg_path.read_text(encoding="utf-8")).get("steps")

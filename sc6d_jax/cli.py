@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "objects": ("sc6d_jax.objects.cli", "write the built-in object set as a BOP models/ folder"),
     "render": ("sc6d_jax.render.cli", "render a BOP-format dataset with MuJoCo"),
     "train": ("sc6d_jax.train.cli", "train a model on crops streamed from the renderer"),
+    "carry": ("sc6d_jax.train.carry", "copy a run's resumable state (config, newest checkpoint, metrics) for the next leg"),
     "predict": ("sc6d_jax.inference.cli", "estimate poses for a BOP dataset or one image"),
     "eval": ("sc6d_jax.metrics.cli", "BOP19 metrics (AR) of a results CSV"),
     "demo": ("sc6d_jax.demo", "the main job: objects, render, predict, evaluate, pictures"),

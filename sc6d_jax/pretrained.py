@@ -4,7 +4,7 @@
     sc6d predict --run builtin --dataset DIR --out results.csv
 
 A shipped model is a parameters-only checkpoint (``meta.json`` + ``state.npz``, the format of
-:mod:`sc6d_jax.train.checkpoint`) in ``sc6d_jax/assets/pretrained/NAME/``.  Its rotation
+:mod:`sc6d_jax.checkpoint`) in ``sc6d_jax/assets/pretrained/NAME/``.  Its rotation
 library cannot be cached inside the package (which may be read-only), so it goes to the user
 cache: ``$SC6D_CACHE`` or ``$XDG_CACHE_HOME/sc6d-jax`` or ``~/.cache/sc6d-jax``, in a folder
 named after the model's name and the hash of its weights.
@@ -92,13 +92,12 @@ def ship(run_dir: str | os.PathLike, out_dir: str | os.PathLike, step: int | Non
     Only the parameters, the config and a note are kept (no optimiser state): a few MB.
     Written atomically; an existing ``out_dir`` is replaced.
     """
-    from sc6d_jax.train.checkpoint import CHECKPOINT_FORMAT, checkpoint_dirs, flatten_with_paths, read_meta
-    from sc6d_jax.train import load_checkpoint
+    from sc6d_jax.checkpoint import CHECKPOINT_FORMAT, find_checkpoint, flatten_with_paths, load_checkpoint, read_meta
 
     run_dir, out_dir = Path(run_dir), Path(out_dir)
-    params, _ = load_checkpoint(run_dir, step=step)
-    found = dict(checkpoint_dirs(run_dir))
-    src_meta = read_meta(found[step if step is not None else max(found)])
+    ckpt = find_checkpoint(run_dir, step)
+    params, _ = load_checkpoint(ckpt)
+    src_meta = read_meta(ckpt)
     arrays = flatten_with_paths(params, "params")
     arrays = {k: np.asarray(v, np.float32) if np.asarray(v).dtype == np.float64 else np.asarray(v)
               for k, v in arrays.items()}

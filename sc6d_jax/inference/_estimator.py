@@ -114,17 +114,13 @@ class Estimator:
 
         ``run_dir`` may also name a shipped model (``"builtin"``, ``"lmo"``; see
         :mod:`sc6d_jax.pretrained`); its library is cached in the user cache."""
+        from sc6d_jax.checkpoint import find_checkpoint, load_checkpoint, read_meta
         from sc6d_jax.pretrained import resolve
-        from sc6d_jax.train import load_checkpoint
-        from sc6d_jax.train.checkpoint import checkpoint_dirs, read_meta
 
         run_dir, cache_dir = resolve(run_dir)
-        params, cfg = load_checkpoint(run_dir, step=step)
-        models_dir = None
-        found = dict(checkpoint_dirs(run_dir))
-        if found:
-            meta = read_meta(found[step if step is not None else max(found)])
-            models_dir = meta.get("models_dir")
+        ckpt = find_checkpoint(run_dir, step)
+        params, cfg = load_checkpoint(ckpt)
+        models_dir = read_meta(ckpt).get("models_dir")  # informative (absent in shipped models)
         lib = load_or_build_library(
             params, cfg.model, library_size, cache_dir=cache_dir if cache else None, progress=progress
         )

@@ -1,6 +1,6 @@
 """Training: typed configs with presets, the training loop, atomic checkpoints, ``sc6d train``."""
 
-from sc6d_jax.train.checkpoint import load_checkpoint, save_checkpoint
+from sc6d_jax.checkpoint import load_checkpoint, save_checkpoint
 from sc6d_jax.train.config import PRESETS, OptimConfig, StreamSettings, TrainConfig, preset
 from sc6d_jax.train.loop import (
     DataFns,

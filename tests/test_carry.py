@@ -1,0 +1,167 @@
+"""``sc6d carry``: a run stopped after its checkpoint of step 3, carried to a fresh folder and
+resumed there with ``sc6d train --resume``, ends bit for bit like an uninterrupted 6-step run;
+bad input is refused with one error line (exit status 2), touching nothing."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sc6d_jax.checkpoint import checkpoint_dirs
+from sc6d_jax.cli import main
+
+#: An asymmetric built-in object (as in test_train_real.py).
+ASYM_OBJ = 1
+STEPS = 6
+
+
+class _Stop(Exception):
+    """Raised by the stream in place of batch ``stop_at``: the run ends as if killed there."""
+
+
+def _stopping_data_fns(stop_at: int):
+    """The real crop stream, raising :class:`_Stop` when asked for batch ``stop_at`` (0-based),
+    i.e. right after the checkpoint of step ``stop_at`` was written."""
+    from sc6d_jax.train import DataFns
+    from sc6d_jax.train.loop import _default_data_fns
+
+    real = _default_data_fns()
+
+    class Stream:
+        def __init__(self, inner, start):
+            self.inner, self.start = inner, start
+            self.obj_ids = inner.obj_ids
+
+        def __iter__(self):
+            for i, batch in enumerate(self.inner, start=self.start):
+                if i >= stop_at:
+                    raise _Stop
+                yield batch
+
+        def close(self):
+            self.inner.close()
+
+    return DataFns(real.stream_config, lambda scfg, start: Stream(real.stream(scfg, start), start), real.z_range)
+
+
+def _metrics(run: Path) -> list[dict]:
+    return [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+
+
+def _files(d: Path) -> dict[Path, bytes]:
+    return {p: p.read_bytes() for p in sorted(d.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory, models):
+    """Run A (6 steps, uninterrupted) and run B (same config, stopped after step 3)."""
+    from sc6d_jax.train import preset, train
+
+    root = tmp_path_factory.mktemp("carry")
+    cfg = preset("tiny", steps=STEPS, checkpoint_every=3, log_every=1).replace(val_crops=0)
+    cfg = cfg.replace(stream=dataclasses.replace(cfg.stream, obj_ids=(ASYM_OBJ,)))
+    train(cfg, models, root / "a", progress=False, verbose=False)
+    with pytest.raises(_Stop):
+        train(cfg, models, root / "b", progress=False, verbose=False, data_fns=_stopping_data_fns(3))
+    assert [s for s, _ in checkpoint_dirs(root / "b")] == [3]
+    with open(root / "b" / "metrics.jsonl", "a") as f:
+        f.write('{"step": 4, "lo')  # a torn line, as a kill in mid-write leaves
+    return root, models
+
+
+def test_carried_state_resumes_bit_exact(runs, capsys):
+    root, models = runs
+    a, b, state = root / "a", root / "b", root / "legs" / "state"
+    before = _files(b)
+    assert main(["carry", "--run", str(b), "--out", str(state)]) == 0
+    out = capsys.readouterr().out
+    assert "step 3" in out and " MB)" in out and f"--out {state} --resume" in out
+    assert _files(b) == before  # the source run is untouched
+    # exactly what a resume needs: config, the newest checkpoint, metrics up to it (+ the marker)
+    assert sorted(str(p.relative_to(state)) for p in state.rglob("*") if p.is_file()) == [
+        "carry.json", "checkpoints/ckpt_00000003/meta.json", "checkpoints/ckpt_00000003/state.npz",
+        "config.json", "metrics.jsonl",
+    ]
+    assert [m["step"] for m in _metrics(state)] == [1, 2, 3]
+    assert sorted(p.name for p in state.parent.iterdir()) == ["state"]  # no temporary leftovers
+    # the carried folder is a run directory as it is: resume it with the CLI (config read back)
+    assert main(["train", "--models", str(models), "--out", str(state), "--resume",
+                 "--no-progress", "--quiet"]) == 0
+    capsys.readouterr()
+    ref = a / "checkpoints" / "ckpt_00000006" / "state.npz"
+    got = state / "checkpoints" / "ckpt_00000006" / "state.npz"
+    with np.load(ref) as x, np.load(got) as y:
+        assert x.files == y.files and any(k.startswith("params/") for k in x.files)
+        for k in x.files:  # parameters, optimiser state and PRNG key
+            np.testing.assert_array_equal(x[k], y[k], err_msg=k)
+    # the curve continues: one line per step, the losses of the uninterrupted run
+    assert [m["step"] for m in _metrics(state)] == list(range(1, STEPS + 1))
+    assert [m["loss"] for m in _metrics(state)] == [m["loss"] for m in _metrics(a)]
+
+    # carrying the state onto itself (after a leg trained in it) keeps only its newest checkpoint
+    assert [s for s, _ in checkpoint_dirs(state)] == [3, 6]
+    assert main(["carry", "--run", str(state), "--out", str(state)]) == 0
+    assert "step 6" in capsys.readouterr().out
+    assert [s for s, _ in checkpoint_dirs(state)] == [6]
+    assert json.loads((state / "carry.json").read_text())["step"] == 6
+    assert [m["step"] for m in _metrics(state)] == list(range(1, STEPS + 1))
+
+    # an earlier carry of the same run is replaced; going back to an older step is refused
+    again = root / "legs" / "again"
+    assert main(["carry", "--run", str(b), "--out", str(again)]) == 0
+    assert main(["carry", "--run", str(a), "--out", str(again)]) == 0
+    assert [s for s, _ in checkpoint_dirs(again)] == [6]
+    capsys.readouterr()
+    snap = _files(state)
+    assert main(["carry", "--run", str(b), "--out", str(state)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "holds step 6, newer than step 3" in err
+    assert _files(state) == snap
+
+
+def test_carry_refuses_bad_input_with_one_error_line(runs, tmp_path, capsys):
+    root, _ = runs
+    b = root / "b"
+
+    def refused(run: Path, out: Path, match: str) -> None:
+        assert main(["carry", "--run", str(run), "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and err.startswith("sc6d carry: error:"), err
+        assert match in err, err
+
+    # no checkpoint (a run killed before its first one), no run directory
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    shutil.copy(b / "config.json", fresh / "config.json")
+    refused(fresh, tmp_path / "s1", "has no checkpoint")
+    refused(tmp_path / "missing", tmp_path / "s1", "does not exist")
+    assert not (tmp_path / "s1").exists()
+    # --out is a file, or a folder that is not a carry (here: another run's directory)
+    (tmp_path / "file").write_text("x")
+    refused(b, tmp_path / "file", "not a directory")
+    assert (tmp_path / "file").read_text() == "x"
+    snap = _files(root / "a")
+    refused(b, root / "a", "not a carried state")
+    assert _files(root / "a") == snap
+    # --out is a carry of another run (another seed)
+    other = tmp_path / "other"
+    assert main(["carry", "--run", str(b), "--out", str(other)]) == 0
+    cfg = json.loads((other / "config.json").read_text())
+    (other / "config.json").write_text(json.dumps({**cfg, "seed": cfg["seed"] + 1}))
+    snap = _files(other)
+    capsys.readouterr()
+    refused(b, other, "holds the state of another run; differing: seed")
+    assert _files(other) == snap
+    # a corrupt newest checkpoint is not carried
+    bad = tmp_path / "bad"
+    shutil.copytree(b, bad)
+    state = bad / "checkpoints" / "ckpt_00000003" / "state.npz"
+    state.write_bytes(state.read_bytes()[:-10])
+    refused(bad, tmp_path / "s2", "corrupt")
+    assert not (tmp_path / "s2").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad", "file", "fresh", "other"]
