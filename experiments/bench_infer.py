@@ -113,7 +113,7 @@ def main() -> None:
                     center = jnp.asarray(rng.uniform(200, 400, (b, 2)), jnp.float32)
                     side = jnp.full((b,), 120.0, jnp.float32)
                     obj = jnp.zeros((b,), jnp.int32)
-                    f = lambda *a: predict_crops(params, blocks, lib_R, *a, mcfg=mcfg, z_mode=cfg.loss.z_mode,
+                    f = lambda *a: predict_crops(params, blocks, lib_R, *a, mcfg=mcfg, lcfg=cfg.loss,
                                                  z_range=(50.0, 2000.0), n_valid=nv, tta=tta)
                     t = med(f, rgb, K, center, side, obj, repeats=args.repeats)
                     print(f"{name:6s} N={n:>8} tta={int(tta)} B={b:3d}: {t / b:8.2f} ms/crop  {1e3 * b / t:7.1f} crops/s",

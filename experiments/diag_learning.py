@@ -44,12 +44,12 @@ def main(argv: list[str]) -> int:
     objs = None if a.objects == "all" else tuple(int(x) for x in a.objects.split(","))
     scfg = StreamConfig(a.models, crop_size=64, batch_size=32, workers=0, curriculum=10**9, occlusion=0.0,
                         obj_ids=objs, augment=False)
-    keys = ("rgb", "pe", "mask_visib", "R_allo", "delta_xy", "delta_z", "obj_idx")
+    keys = ("rgb", "pe", "mask_visib", "R_allo", "delta_xy", "delta_z", "obj_idx", "K")
     with CropStream(scfg) as s:
         batches = [{k: v for k, v in s.batch(i).items() if k in keys} for i in range(a.batches)]
         n_obj = len(s.obj_ids)
-    z_range = delta_z_range(scfg)
     tc = apply_overrides(preset("cpu"), a.set)
+    z_range = delta_z_range(scfg, focal_ref=model.F_REF if tc.loss.z_norm == "focal" else None)
     mc = dataclasses.replace(tc.model, n_objects=n_obj)
     if a.gn_groups is not None:
         mc = dataclasses.replace(mc, gn_groups=a.gn_groups)

@@ -205,3 +205,77 @@ def test_z_loss_variants_and_switches_eager(params):
     bad = dict(batch, delta_xy=np.zeros((2, 3), np.float32))
     with pytest.raises(ValueError, match="delta_xy"):
         loss_fn(params, CFG, base, bad, key, Z_RANGE)
+
+
+# ----------------------------------------------------------------------------- the cpu recipe's terms
+def test_focal_normalised_depth_code_round_trips_and_removes_the_focal_length():
+    """The code delta_z * F_REF / f is the same for two cameras that see the same crop content."""
+    from sc6d_jax.model import F_REF, code_to_delta_z, z_code
+
+    lcfg = LossConfig(z_norm="focal")
+    K = np.array([np.diag([500.0, 500.0, 1.0]), np.diag([700.0, 700.0, 1.0])], np.float32)
+    # the same object at the same distance: its image (and the crop box around it) grows with f,
+    # so both crops show the same thing, yet delta_z = t_z s_B / S differs by 700/500
+    tz, side, S = np.array([1000.0, 1000.0]), np.array([100.0, 140.0]), 64
+    dz = tz * side / S
+    code = np.asarray(z_code(jnp.asarray(dz, jnp.float32), K, lcfg))
+    np.testing.assert_allclose(code[0], code[1], rtol=1e-6)  
+    np.testing.assert_allclose(code[0], dz[0] * F_REF / 500.0, rtol=1e-6)
+    np.testing.assert_allclose(code_to_delta_z(code, K, lcfg), dz, rtol=1e-6)
+    plain = LossConfig()
+    np.testing.assert_allclose(z_code(jnp.asarray(dz), K, plain), dz)
+    with pytest.raises(ValueError, match="needs the image intrinsics"):
+        z_code(jnp.asarray(dz), None, lcfg)
+
+
+def test_log_bins_decode_and_gaussian_labels():
+    from sc6d_jax.model import gaussian_bin_targets
+
+    lcfg = LossConfig(z_bins="log", z_mode="classification")
+    n = 9
+    logits = jnp.full((1, n), -30.0).at[0, 4].set(30.0)  # the middle bin of 9
+    z = float(predict_z({"z_logits": logits}, lcfg, (1.0, 4.0))[0])
+    assert z == pytest.approx(2.0, rel=1e-5)  # the geometric middle of [1, 4]
+    lin = float(predict_z({"z_logits": logits}, dataclasses.replace(lcfg, z_bins="linear"), (1.0, 4.0))[0])
+    assert lin == pytest.approx(2.5, rel=1e-5)
+    soft = np.asarray(gaussian_bin_targets(jnp.array([3.5]), n, 1.0))[0]
+    assert soft.sum() == pytest.approx(1.0, abs=1e-6)
+    assert soft[3] == pytest.approx(soft[4]) and soft[3] > soft[2] > soft[1]
+    np.testing.assert_allclose(np.sum(soft * np.arange(n)), 3.5, atol=1e-3)
+
+
+def test_local_negatives_lie_in_their_angle_band(params):
+    from sc6d_jax.geometry import geodesic_angle
+    from sc6d_jax.model import local_rotation_deltas
+
+    d = local_rotation_deltas(jax.random.key(0), (4, 50), 5.0, 20.0)
+    assert d.shape == (4, 50, 3, 3)
+    np.testing.assert_allclose(np.asarray(d @ jnp.swapaxes(d, -1, -2)), np.broadcast_to(np.eye(3), d.shape), atol=1e-5)
+    ang = np.degrees(np.asarray(geodesic_angle(d, jnp.broadcast_to(jnp.eye(3), d.shape))))
+    assert ang.min() >= 5.0 - 1e-3 and ang.max() <= 20.0 + 1e-3
+    # they add M columns to the candidate logits, after the ground truth and the shared set
+    batch = _batch(CFG, b=2)
+    lcfg = LossConfig(n_negatives=6, rebase_negatives=False, n_local_negatives=5)
+    from sc6d_jax.model import apply
+
+    out = apply(params, CFG, batch["rgb"], batch["pe"], batch["obj_idx"])
+    logits = candidate_logits(params, CFG, lcfg, out, jnp.asarray(batch["R_allo"]), jnp.asarray(batch["obj_idx"]), jax.random.key(2))
+    assert logits.shape == (2, 1 + 6 + 5)
+
+
+def test_cpu_recipe_loss_is_finite_and_uses_K(grad_fn):
+    mcfg = dataclasses.replace(CFG, mask_gate=True)
+    lcfg = LossConfig(n_negatives=8, rebase_negatives=False, z_norm="focal", z_bins="log", z_loss="gauss",
+                      z_label_sigma=1.5, w_z_l1=1.0, n_local_negatives=4)
+    p = init(jax.random.key(0), mcfg)
+    batch = _batch(mcfg)
+    batch["K"] = np.broadcast_to(np.diag([600.0, 600.0, 1.0]).astype(np.float32), (4, 3, 3)).copy()
+    (loss, aux), grads = grad_fn(p, mcfg, lcfg, batch, jax.random.key(1), Z_RANGE)
+    assert np.isfinite(float(loss)) and float(aux["z_rel_err"]) >= 0
+    assert all(np.all(np.isfinite(np.asarray(g))) for g in jax.tree.leaves(grads))
+    with pytest.raises(ValueError, match="needs the image intrinsics"):
+        loss_fn(p, mcfg, lcfg, {k: v for k, v in batch.items() if k != "K"}, jax.random.key(1), Z_RANGE)
+    with pytest.raises(ValueError, match="z_norm"):
+        LossConfig(z_norm="metric")
+    with pytest.raises(ValueError, match="local_min_deg"):
+        LossConfig(local_min_deg=40.0, local_max_deg=30.0)

@@ -437,9 +437,14 @@ class CropStream:
             pass
 
 
-def delta_z_range(cfg: StreamConfig, n: int = 4000, margin: float = 0.1) -> tuple[float, float]:
+def delta_z_range(
+    cfg: StreamConfig, n: int = 4000, margin: float = 0.1, focal_ref: float | None = None
+) -> tuple[float, float]:
     """(d_lo, d_hi) of delta_z = t_z * s_B / S over the training pose distribution, widened by
-    ``margin`` on each side. Poses only (no rendering), deterministic in ``cfg.seed``."""
+    ``margin`` on each side. Poses only (no rendering), deterministic in ``cfg.seed``.
+
+    focal_ref: the range of the focal-normalised code delta_z * focal_ref / sqrt(fx fy)
+    instead (``sc6d_jax.model.LossConfig.z_norm = "focal"``)."""
     from sc6d_jax.bop import load_models_info, model_path
     from sc6d_jax.render import load_mesh
 
@@ -452,7 +457,10 @@ def delta_z_range(cfg: StreamConfig, n: int = 4000, margin: float = 0.1) -> tupl
     for _ in range(n):
         p = sample_pose(rng, obj_ids, verts, diam, cfg.distance)
         side = cfg.pad * max(p.box[2], p.box[3])
-        dz.append(p.t[2] * side / cfg.crop_size)
+        d = p.t[2] * side / cfg.crop_size
+        if focal_ref is not None:
+            d *= focal_ref / np.sqrt(p.K[0, 0] * p.K[1, 1])
+        dz.append(d)
     lo, hi = float(np.min(dz)), float(np.max(dz))
     span = hi - lo
     return max(lo - margin * span, 1e-3), hi + margin * span

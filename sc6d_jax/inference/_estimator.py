@@ -90,7 +90,7 @@ class Estimator:
         self.mcfg = config.model
         self.obj_ids: list[int] = [int(i) for i in config.stream.obj_ids]
         self.z_range = tuple(float(v) for v in config.z_range)
-        self.z_mode = str(config.loss.z_mode)
+        self.lcfg = config.loss
         self.tau = float(config.loss.tau)
         self.models_dir = models_dir
         self.params = jax.tree.map(jnp.asarray, params)
@@ -163,7 +163,7 @@ class Estimator:
         """``f(params, blocks, lib_R, rgb, K, center, side, obj_idx) -> dict`` (jitted, static
         options bound) and its library arguments, for a batch of ``batch`` crops."""
         blocks, n = self.packed_library()
-        kw = dict(mcfg=self.mcfg, z_mode=self.z_mode, z_range=self.z_range, n_valid=n, tta=tta,
+        kw = dict(mcfg=self.mcfg, lcfg=self.lcfg, z_range=self.z_range, n_valid=n, tta=tta,
                   top_k=top_k, refine=refine, tau=self.tau)
         return kw, blocks
 

@@ -41,15 +41,15 @@ def rotate_crops(rgb: jax.Array, k: int) -> jax.Array:
     return jnp.rot90(rgb, k=-k, axes=(1, 2))
 
 
-def _z_decode(out: dict, z_mode: str, z_range: tuple[float, float]) -> jax.Array:
-    from sc6d_jax.model import LossConfig, predict_z
+def _z_decode(out: dict, lcfg: Any, z_range: tuple[float, float], K: jax.Array) -> jax.Array:
+    from sc6d_jax.model import decode_delta_z
 
-    return predict_z(out, LossConfig(z_mode=z_mode), z_range)
+    return decode_delta_z(out, lcfg, z_range, K)
 
 
 @functools.partial(
     jax.jit,
-    static_argnames=("mcfg", "z_mode", "z_range", "n_valid", "tta", "top_k", "refine", "tau"),
+    static_argnames=("mcfg", "lcfg", "z_range", "n_valid", "tta", "top_k", "refine", "tau"),
 )
 def predict_crops(
     params: dict,
@@ -62,7 +62,7 @@ def predict_crops(
     obj_idx: jax.Array,
     *,
     mcfg: Any,
-    z_mode: str,
+    lcfg: Any,
     z_range: tuple[float, float],
     n_valid: int,
     tta: bool = False,
@@ -104,7 +104,8 @@ def predict_crops(
 
     out = apply(params, mcfg, rgb_in, pe_in if mcfg.use_pe else None, obj_in)
     emb = out["rot_emb"].astype(f32)
-    dz = _z_decode(out, z_mode, z_range).astype(f32).reshape(n_copies, B)
+    K_in = jnp.concatenate([K] * n_copies, axis=0)
+    dz = _z_decode(out, lcfg, z_range, K_in).astype(f32).reshape(n_copies, B)
     dxy = out["delta_xy"].astype(f32).reshape(n_copies, B, 2)
     m = _match_blocks(emb, lib_blocks, n_valid, top_k, tau, True, obj_in)
     idx = m.index.reshape(n_copies, B, top_k)

@@ -8,8 +8,14 @@ from ._config import BACKBONES, ModelConfig
 from ._layers import choose_conv_impl, conv2d, group_norm, im2col, upsample2x_bilinear
 from ._network import apply, count_params, init, normalize_rgb
 from ._losses import (
+    F_REF,
     LossConfig,
     bce_with_logits,
+    code_to_delta_z,
+    decode_delta_z,
+    gaussian_bin_targets,
+    local_rotation_deltas,
+    z_code,
     candidate_logits,
     cross_entropy,
     downsample_mask,
@@ -22,7 +28,13 @@ from ._weights import load_resnet_weights
 from ._rotation import encode_rotations, rotation_features, rotation_logits
 
 __all__ = [
+    "F_REF",
     "LossConfig",
+    "code_to_delta_z",
+    "decode_delta_z",
+    "gaussian_bin_targets",
+    "local_rotation_deltas",
+    "z_code",
     "bce_with_logits",
     "candidate_logits",
     "cross_entropy",

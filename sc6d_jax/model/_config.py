@@ -42,6 +42,11 @@ class ModelConfig:
     - ipdf_hidden: width of the IPDF MLP (256); ipdf_pe_freqs: positional-encoding
       frequencies of the rotation input to IPDF (0 = the raw 9 matrix entries).
     - gn_groups: maximum GroupNorm groups (32; fewer when channels are few).
+    - mask_gate: multiply the decoder features by sigmoid(mask logit) before the pose decoder,
+      so that clutter and occluders reach the heads damped by the predicted visible mask
+      (False = paper: the mask is only concatenated).
+    - z_size_input: give the depth head the apparent size of the predicted visible mask (log
+      area, log spread in x and y; ``_pose_decoder.mask_size_features``) next to its features.
     """
 
     n_objects: int = 1
@@ -63,6 +68,8 @@ class ModelConfig:
     ipdf_hidden: int = 256
     ipdf_pe_freqs: int = 0
     gn_groups: int = 32
+    mask_gate: bool = False
+    z_size_input: bool = False
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:

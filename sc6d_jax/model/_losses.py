@@ -8,6 +8,7 @@ is the same as classification), PE map (A4; ModelConfig.use_pe), IPDF head (Mode
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
@@ -19,8 +20,13 @@ from ._network import apply
 from ._rotation import rotation_logits
 
 Z_MODES = ("regression", "classification", "expectation")
-Z_LOSSES = ("focal", "ce")
+Z_LOSSES = ("focal", "ce", "gauss")
+Z_NORMS = ("none", "focal")
+Z_BINS = ("linear", "log")
 MASK_DOWNSAMPLE = ("area", "nearest")
+
+#: Reference focal length (pixels) of the focal-normalised depth code (``LossConfig.z_norm``).
+F_REF = 600.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -30,7 +36,22 @@ class LossConfig:
     - z_mode: "regression" (L1 on delta_z normalised to [0, 1] over the bin range, read from
       z-head output unit 0), "classification" (argmax decode) or "expectation" (softmax
       expectation decode; paper default). Both classification modes train the same loss.
-    - z_loss: "focal" (-alpha (1 - p)^gamma log p, paper) or "ce" (plain cross-entropy).
+    - z_loss: "focal" (-alpha (1 - p)^gamma log p, paper), "ce" (plain cross-entropy) or
+      "gauss" (cross-entropy against a Gaussian-smoothed label of ``z_label_sigma`` bins around
+      the exact, fractional bin position: neighbouring bins are nearly right, so every bin
+      near the target gets a gradient instead of one bin in 1000).
+    - z_norm: "none" (paper: the depth code is delta_z = t_z s_B / S) or "focal" (the code is
+      delta_z * F_REF / f with f = sqrt(fx fy) of the image K). delta_z depends on the focal
+      length, which a crop does not show (the PE map gives the crop's angular size s_B / f,
+      not f); with the training stream's random focal lengths (520-680 px) that is a
+      +-13 % label noise no network can remove. The focal-normalised code is t_z times the
+      crop's angular size per pixel, a property of what the crop shows.
+    - z_bins: "linear" (paper: bins evenly spaced in the code) or "log" (evenly spaced in
+      log(code): a constant relative depth resolution, and the regression mode regresses
+      log(code)).
+    - z_label_sigma: width in bins of the "gauss" label.
+    - w_z_l1: weight of an extra L1 loss on the relative error of the decoded depth
+      (|log(decoded / true)|, the expectation of the bins) next to the bin loss (0 = off).
     - focal_alpha 0.5, focal_gamma 2.
     - tau: InfoNCE temperature (0.1). n_negatives: Q sampled rotations (5000).
     - rebase_negatives: True (authors): the Q Fibonacci-viewpoint + random-roll deltas are
@@ -38,6 +59,10 @@ class LossConfig:
       candidates (the SO(3) encoder runs B*(Q+1) times). False: the Q deltas are used as
       they are, one candidate set for the whole batch (encoder runs Q + B times; much
       cheaper on a CPU), plus each sample's ground truth.
+    - n_local_negatives: M extra negatives per sample near its ground truth (R_gt turned by a
+      random axis and an angle uniform in [local_min_deg, local_max_deg]): hard negatives
+      that teach fine rotation once the coarse shape is learnt (the shared set is ~14 degrees
+      apart at Q = 5000). 0 = off (paper).
     - per_sample_negatives: draw an independent random roll per sample (vmapped over the
       batch) instead of one set of deltas shared by the batch.
     - w_rot 1, w_xy 10, w_z 1, w_mask 1: loss weights.
@@ -58,19 +83,38 @@ class LossConfig:
     w_z: float = 1.0
     w_mask: float = 1.0
     mask_downsample: str = "area"
+    z_norm: str = "none"
+    z_bins: str = "linear"
+    z_label_sigma: float = 1.0
+    w_z_l1: float = 0.0
+    n_local_negatives: int = 0
+    local_min_deg: float = 2.0
+    local_max_deg: float = 30.0
 
     def __post_init__(self) -> None:
         if self.z_mode not in Z_MODES:
             raise ValueError(f"z_mode must be one of {Z_MODES}, got {self.z_mode!r}")
         if self.z_loss not in Z_LOSSES:
             raise ValueError(f"z_loss must be one of {Z_LOSSES}, got {self.z_loss!r}")
+        if self.z_norm not in Z_NORMS:
+            raise ValueError(f"z_norm must be one of {Z_NORMS}, got {self.z_norm!r}")
+        if self.z_bins not in Z_BINS:
+            raise ValueError(f"z_bins must be one of {Z_BINS}, got {self.z_bins!r}")
+        if not self.z_label_sigma > 0:
+            raise ValueError(f"z_label_sigma must be > 0, got {self.z_label_sigma}")
+        if not isinstance(self.n_local_negatives, int) or self.n_local_negatives < 0:
+            raise ValueError(f"n_local_negatives must be a non-negative int, got {self.n_local_negatives!r}")
+        if not 0 <= self.local_min_deg <= self.local_max_deg <= 180:
+            raise ValueError(
+                f"need 0 <= local_min_deg <= local_max_deg <= 180, got {self.local_min_deg}, {self.local_max_deg}"
+            )
         if self.mask_downsample not in MASK_DOWNSAMPLE:
             raise ValueError(f"mask_downsample must be one of {MASK_DOWNSAMPLE}, got {self.mask_downsample!r}")
         if not self.tau > 0:
             raise ValueError(f"tau must be > 0, got {self.tau}")
         if not isinstance(self.n_negatives, int) or self.n_negatives < 1:
             raise ValueError(f"n_negatives must be a positive int, got {self.n_negatives!r}")
-        for name in ("w_rot", "w_xy", "w_z", "w_mask", "focal_alpha", "focal_gamma"):
+        for name in ("w_rot", "w_xy", "w_z", "w_mask", "w_z_l1", "focal_alpha", "focal_gamma"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 
@@ -118,16 +162,79 @@ def downsample_mask(mask: jax.Array, factor: int = 4, mode: str = "area") -> jax
     raise ValueError(f"mode must be one of {MASK_DOWNSAMPLE}, got {mode!r}")
 
 
-def predict_z(out: dict, lcfg: LossConfig, z_range: tuple[float, float]) -> jax.Array:
-    """Decode delta_z (B,) from a forward pass according to lcfg.z_mode."""
+def _z_axis(lcfg: LossConfig, z_range: tuple[float, float]) -> tuple[float, float]:
+    """The bin axis ends: the code range, or its logarithm for log bins."""
     d_lo, d_hi = z_range
+    if lcfg.z_bins == "log":
+        return math.log(d_lo), math.log(d_hi)
+    return d_lo, d_hi
+
+
+def z_code(delta_z: jax.Array, K: jax.Array | None, lcfg: LossConfig) -> jax.Array:
+    """The depth code the z head predicts: delta_z (paper) or delta_z * F_REF / f (z_norm="focal").
+
+    K: (B,3,3) image intrinsics (only read for z_norm="focal")."""
+    if lcfg.z_norm == "none":
+        return delta_z
+    if K is None:
+        raise ValueError("z_norm='focal' needs the image intrinsics K")
+    K = jnp.asarray(K, jnp.float32)
+    f = jnp.sqrt(K[..., 0, 0] * K[..., 1, 1])
+    return delta_z * (F_REF / f)
+
+
+def code_to_delta_z(code: jax.Array, K: jax.Array | None, lcfg: LossConfig) -> jax.Array:
+    """Inverse of :func:`z_code`: the paper's delta_z = t_z s_B / S from a decoded code."""
+    if lcfg.z_norm == "none":
+        return code
+    if K is None:
+        raise ValueError("z_norm='focal' needs the image intrinsics K")
+    K = jnp.asarray(K, jnp.float32)
+    f = jnp.sqrt(K[..., 0, 0] * K[..., 1, 1])
+    return code * (f / F_REF)
+
+
+def predict_z(out: dict, lcfg: LossConfig, z_range: tuple[float, float]) -> jax.Array:
+    """Decode the depth code (B,) from a forward pass according to lcfg.z_mode and z_bins.
+
+    The code is delta_z for z_norm="none"; use :func:`code_to_delta_z` (or :func:`decode_delta_z`)
+    to get delta_z for z_norm="focal"."""
+    a_lo, a_hi = _z_axis(lcfg, z_range)
     zl = out["z_logits"]
     if lcfg.z_mode == "regression":
-        return d_lo + (d_hi - d_lo) * zl[..., 0]
-    centers = z_bin_centers(zl.shape[-1], d_lo, d_hi, dtype=zl.dtype)
-    if lcfg.z_mode == "classification":
-        return centers[jnp.argmax(zl, axis=-1)]
-    return jax.nn.softmax(zl, axis=-1) @ centers
+        v = a_lo + (a_hi - a_lo) * zl[..., 0]
+    else:
+        centers = z_bin_centers(zl.shape[-1], a_lo, a_hi, dtype=zl.dtype)
+        if lcfg.z_mode == "classification":
+            v = centers[jnp.argmax(zl, axis=-1)]
+        else:
+            v = jax.nn.softmax(zl, axis=-1) @ centers
+    return jnp.exp(v) if lcfg.z_bins == "log" else v
+
+
+def decode_delta_z(out: dict, lcfg: LossConfig, z_range: tuple[float, float], K: jax.Array | None) -> jax.Array:
+    """delta_z = t_z s_B / S (B,) of a forward pass: :func:`predict_z` then :func:`code_to_delta_z`."""
+    return code_to_delta_z(predict_z(out, lcfg, z_range), K, lcfg)
+
+
+def gaussian_bin_targets(pos: jax.Array, n_bins: int, sigma: float) -> jax.Array:
+    """(B, n_bins) soft labels: a Gaussian of ``sigma`` bins around the fractional bin ``pos``, normalised."""
+    k = jnp.arange(n_bins, dtype=jnp.float32)
+    w = jnp.exp(-0.5 * jnp.square((k[None, :] - pos[:, None]) / sigma))
+    return w / jnp.sum(w, axis=-1, keepdims=True)
+
+
+def local_rotation_deltas(key: jax.Array, shape: tuple[int, ...], min_deg: float, max_deg: float) -> jax.Array:
+    """Rotations (*shape, 3, 3) about uniform random axes by angles uniform in [min_deg, max_deg]."""
+    k1, k2 = jax.random.split(key)
+    axis = jax.random.normal(k1, shape + (3,))
+    axis = axis / jnp.linalg.norm(axis, axis=-1, keepdims=True)
+    ang = jnp.deg2rad(jax.random.uniform(k2, shape, minval=min_deg, maxval=max_deg))
+    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
+    zero = jnp.zeros_like(x)
+    Kx = jnp.stack([jnp.stack([zero, -z, y], -1), jnp.stack([z, zero, -x], -1), jnp.stack([-y, x, zero], -1)], -2)
+    s, c = jnp.sin(ang)[..., None, None], jnp.cos(ang)[..., None, None]
+    return jnp.eye(3) + s * Kx + (1.0 - c) * (Kx @ Kx)
 
 
 def candidate_logits(
@@ -155,7 +262,12 @@ def candidate_logits(
         return rotation_logits(params, mcfg, out, cands, obj_idx, lcfg.tau)
     pos = rotation_logits(params, mcfg, out, R_gt[:, None], obj_idx, lcfg.tau)  # (B,1)
     neg = rotation_logits(params, mcfg, out, deltas, obj_idx, lcfg.tau)  # (B,Q)
-    return jnp.concatenate([pos, neg], axis=1)
+    parts = [pos, neg]
+    if lcfg.n_local_negatives:
+        m = lcfg.n_local_negatives
+        loc = local_rotation_deltas(jax.random.fold_in(key, 1), (b, m), lcfg.local_min_deg, lcfg.local_max_deg)
+        parts.append(rotation_logits(params, mcfg, out, R_gt[:, None] @ loc, obj_idx, lcfg.tau))  # (B,M)
+    return jnp.concatenate(parts, axis=1)
 
 
 def _check_batch(mcfg: ModelConfig, batch: dict) -> None:
@@ -188,7 +300,9 @@ def loss_fn(
 
     Returns (loss, aux) with aux = {'loss', 'loss_rot', 'loss_xy', 'loss_z', 'loss_mask',
     'rot_top1' (fraction of samples whose ground truth outscores every negative),
-    'z_abs_err' (mean |decoded delta_z - delta_z|), 'xy_abs_err'}.
+    'z_abs_err' (mean |decoded depth code - true code|; the code is delta_z unless
+    z_norm="focal"), 'z_rel_err' (the same relative to the true code), 'xy_abs_err'}.
+    With z_norm="focal" the batch must hold 'K' (B,3,3), the image intrinsics.
     """
     _check_batch(mcfg, batch)
     d_lo, d_hi = z_range
@@ -202,14 +316,24 @@ def loss_fn(
     loss_xy = jnp.mean(jnp.sum(jnp.abs(out["delta_xy"] - dxy), axis=-1))
 
     dz = jnp.asarray(batch["delta_z"], jnp.float32)
+    code = z_code(dz, batch.get("K"), lcfg)
+    a_lo, a_hi = _z_axis(lcfg, z_range)
+    val = jnp.log(code) if lcfg.z_bins == "log" else code
     if lcfg.z_mode == "regression":
-        loss_z = jnp.mean(jnp.abs(out["z_logits"][:, 0] - (dz - d_lo) / (d_hi - d_lo)))
+        loss_z = jnp.mean(jnp.abs(out["z_logits"][:, 0] - (val - a_lo) / (a_hi - a_lo)))
     else:
-        labels = z_bin_label(dz, mcfg.n_z_bins, d_lo, d_hi)
+        labels = z_bin_label(val, mcfg.n_z_bins, a_lo, a_hi)
         if lcfg.z_loss == "focal":
             loss_z = focal_loss(out["z_logits"], labels, lcfg.focal_alpha, lcfg.focal_gamma)
+        elif lcfg.z_loss == "gauss":
+            pos = jnp.clip((val - a_lo) / (a_hi - a_lo), 0.0, 1.0) * (mcfg.n_z_bins - 1)
+            soft = gaussian_bin_targets(pos, mcfg.n_z_bins, lcfg.z_label_sigma)
+            loss_z = -jnp.mean(jnp.sum(soft * jax.nn.log_softmax(out["z_logits"], axis=-1), axis=-1))
         else:
             loss_z = cross_entropy(out["z_logits"], labels)
+    code_pred = predict_z(out, lcfg, z_range)
+    if lcfg.w_z_l1 > 0:
+        loss_z = loss_z + lcfg.w_z_l1 * jnp.mean(jnp.abs(jnp.log(jnp.maximum(code_pred, 1e-6) / code)))
 
     target = downsample_mask(jnp.asarray(batch["mask_visib"]), 4, lcfg.mask_downsample)
     loss_mask = bce_with_logits(out["mask_logit"], target)
@@ -222,7 +346,8 @@ def loss_fn(
         "loss_z": loss_z,
         "loss_mask": loss_mask,
         "rot_top1": jnp.mean((jnp.argmax(logits, axis=-1) == 0).astype(jnp.float32)),
-        "z_abs_err": jnp.mean(jnp.abs(jax.lax.stop_gradient(predict_z(out, lcfg, z_range)) - dz)),
+        "z_abs_err": jnp.mean(jnp.abs(jax.lax.stop_gradient(code_pred) - code)),
+        "z_rel_err": jnp.mean(jnp.abs(jax.lax.stop_gradient(code_pred) - code) / code),
         "xy_abs_err": jnp.mean(jnp.abs(jax.lax.stop_gradient(out["delta_xy"]) - dxy)),
     }
     return loss, aux

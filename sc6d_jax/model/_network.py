@@ -20,7 +20,6 @@ def init(key: jax.Array, cfg: ModelConfig) -> dict:
     """Fresh parameters: {'backbone', 'decoder', 'pose_decoder', 'rot_head'} (plain dicts/lists).
 
     Deterministic: the same key and config give bit-identical params (drawn with a numpy
-    Generator seeded from the key, see _layers.make_rng).(drawn with a numpy
     Generator seeded from the key, see _layers.make_rng).
     """
     if not isinstance(cfg, ModelConfig):
@@ -73,6 +72,8 @@ def apply(
         x = jnp.concatenate([x, pe.astype(jnp.float32)], axis=-1)
     feats = backbone(params["backbone"], cfg, x)
     feat, mask_logit = decoder(params["decoder"], cfg, feats, obj_idx)
+    if cfg.mask_gate:
+        feat = feat * jax.nn.sigmoid(mask_logit)[..., None]
     rot, dxy, zl = pose_decoder(params["pose_decoder"], cfg, feat, mask_logit)
     return {"rot_emb": _l2n(rot), "delta_xy": dxy, "z_logits": zl, "mask_logit": mask_logit}
 

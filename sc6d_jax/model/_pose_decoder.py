@@ -46,7 +46,31 @@ def init_pose_decoder(key: np.random.Generator, cfg: ModelConfig) -> dict:
             "fc_gn": init_gn(hh),
             "out": init_dense(k3, hh, out_dim, scale=0.01),
         }
+    if cfg.z_size_input:
+        params["z"]["size"] = init_dense(split(k[-1], 4)[3], N_SIZE_FEATURES, hh)
     return params
+
+
+#: Apparent-size features of the predicted visible mask fed to the depth head (z_size_input).
+N_SIZE_FEATURES = 3
+
+
+def mask_size_features(mask_logit: jax.Array) -> jax.Array:
+    """(B, 3) apparent size of the soft visible mask sigmoid(logit) (B,h,w): log of its area
+    fraction and log of its spatial standard deviation along x and y (crop units in [-1, 1]).
+    The depth code is the object's size over its apparent size in the crop; GroupNorm and pooling
+    make an absolute area hard to read from normalised features, so it is given explicitly."""
+    m = jax.nn.sigmoid(mask_logit.astype(jnp.float32))
+    h, w = m.shape[-2:]
+    v = jnp.linspace(-1.0, 1.0, h)[:, None]
+    u = jnp.linspace(-1.0, 1.0, w)[None, :]
+    mass = jnp.sum(m, axis=(-2, -1)) + 1e-4
+    mu = jnp.sum(m * u, axis=(-2, -1)) / mass
+    mv = jnp.sum(m * v, axis=(-2, -1)) / mass
+    var_u = jnp.sum(m * jnp.square(u - mu[:, None, None]), axis=(-2, -1)) / mass
+    var_v = jnp.sum(m * jnp.square(v - mv[:, None, None]), axis=(-2, -1)) / mass
+    area = mass / (h * w)
+    return jnp.stack([jnp.log(area + 1e-4), 0.5 * jnp.log(var_u + 1e-4), 0.5 * jnp.log(var_v + 1e-4)], axis=-1)
 
 
 def pose_decoder(
@@ -67,6 +91,8 @@ def pose_decoder(
         h = conv_gn_relu(x, p["conv"], cfg, stride=2)
         h = h.reshape(h.shape[0], -1)
         h = dense(h, p["fc"]["w"], p["fc"]["b"])
+        if name == "z" and "size" in p:
+            h = h + dense(mask_size_features(mask_logit), p["size"]["w"], p["size"]["b"])
         h = jax.nn.relu(group_norm(h, p["fc_gn"]["scale"], p["fc_gn"]["bias"], num_groups(h.shape[-1], cfg.gn_groups)))
         outs.append(dense(h, p["out"]["w"], p["out"]["b"]))
     return outs[0], outs[1], outs[2]
