@@ -46,8 +46,17 @@ def test_presets_roundtrip_through_json():
     cpu = preset("cpu")
     assert (cpu.stream.batch_size, cpu.model.crop_size) == (32, 64)
     assert (cpu.optim.lr, cpu.optim.lr_end, cpu.optim.weight_decay) == (1e-3, 1e-5, 1e-4)
-    assert (cpu.steps, cpu.stream.curriculum) == (18_000, 4_000)  # about an hour on 2 cores
-    with pytest.raises(ValueError, match="unknown preset 'huge'.*paper, cpu, tiny"):
+    assert cpu.steps == 18_000  # about an hour on 2 cores
+    # the schedule scales with the run: curriculum 30 %, warm-up 1 %
+    assert (cpu.curriculum_steps, cpu.warmup_steps) == (5_400, 180)
+    assert (cpu.replace(steps=6000).curriculum_steps, cpu.replace(steps=6000).warmup_steps) == (1_800, 60)
+    assert (cpu.model.gn_groups, cpu.loss.z_norm, cpu.loss.z_bins, cpu.model.mask_gate, cpu.loss.n_local_negatives) == (
+        4, "focal", "log", True, 256)
+    paper_loss = paper.loss
+    assert (paper_loss.z_norm, paper_loss.z_bins, paper_loss.z_loss, paper.model.gn_groups) == ("none", "linear", "focal", 32)
+    long = preset("long")
+    assert long.steps == 150_000 and long.model == cpu.model and long.loss == cpu.loss
+    with pytest.raises(ValueError, match="unknown preset 'huge'.*paper, cpu, long, tiny"):
         preset("huge")
     with pytest.raises(ValueError, match="unknown field"):
         TrainConfig.from_dict({**cpu.to_dict(), "lr": 1.0})
@@ -143,7 +152,9 @@ def test_tiny_preset_learns_rotation_of_a_builtin_object(tmp_path, models_dir):
     from sc6d_jax.train import DataFns
 
     fns = DataFns(lambda **kw: kw, AxisStream, lambda cfg: (0.8, 1.2))
-    cfg = preset("tiny", log_every=50, checkpoint_every=400)
+    cfg = preset("tiny", log_every=50, checkpoint_every=400, val_crops=0)
+    # this stream has one camera and gives no K: the paper's depth code
+    cfg = cfg.replace(loss=cfg.loss.__class__(**{**cfg.loss.__dict__, "z_norm": "none", "z_bins": "linear"}))
     cfg = cfg.replace(stream=cfg.stream.__class__(batch_size=cfg.stream.batch_size, obj_ids=(ASYM_OBJ,)))
     params = train(cfg, models_dir, tmp_path / "a", progress=False, verbose=False, data_fns=fns)
     trained = TrainConfig.from_json((tmp_path / "a" / "config.json").read_text())
@@ -216,3 +227,18 @@ def test_cli_sigkill_and_resume_is_bit_exact(tmp_path, models_dir):
         assert x.files == y.files
         for k in x.files:
             np.testing.assert_array_equal(x[k], y[k], err_msg=k)
+
+
+def test_cli_obj_ids_keep_the_presets_stream_settings(tmp_path):
+    """--obj-ids / --batch-size used to rebuild the stream settings and silently drop the
+    preset's curriculum and distance."""
+    from sc6d_jax.train.cli import build_config, build_parser
+
+    args = build_parser().parse_args(["--models", "m", "--out", str(tmp_path / "r"), "--preset", "cpu",
+                                      "--obj-ids", "1,3", "--batch-size", "16", "--steps", "6000",
+                                      "--set", "stream.distance=2.5,12"])
+    cfg = build_config(args)
+    cpu = preset("cpu")
+    assert cfg.stream.obj_ids == (1, 3) and cfg.stream.batch_size == 16 and cfg.model.n_objects == 2
+    assert cfg.stream.curriculum_fraction == cpu.stream.curriculum_fraction > 0
+    assert cfg.curriculum_steps == 1800 and cfg.stream.distance == (2.5, 12.0)

@@ -178,21 +178,11 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: list[str]) -> int:
-    args = build_parser().parse_args(argv)
-    dist = (args.coordinator, args.num_processes, args.process_id)
-    if any(x is not None for x in dist):
-        if any(x is None for x in dist):
-            raise ValueError("--coordinator, --num-processes and --process-id must be given together")
-        from sc6d_jax.train.loop import initialize_distributed
+def build_config(args: argparse.Namespace) -> Any:
+    """The TrainConfig of ``sc6d train``: the preset (or, resuming without --preset, the run's
+    config.json), then --steps/--seed/--batch-size/--obj-ids/..., then every --set."""
+    from sc6d_jax.train.config import TrainConfig, preset
 
-        initialize_distributed(args.coordinator, args.num_processes, args.process_id)
-
-    from sc6d_jax.train.config import StreamSettings, TrainConfig, preset
-    from sc6d_jax.train.loop import NonFiniteLossError, train
-
-    if args.workers is not None and args.workers < 0:
-        raise ValueError(f"--workers must be >= 0, got {args.workers}")
     saved = args.out / "config.json"
     if args.resume and args.preset is None and saved.is_file():
         cfg = TrainConfig.from_json(saved.read_text(encoding="utf-8"))
@@ -204,17 +194,34 @@ def main(argv: list[str]) -> int:
             changes[name] = getattr(args, name)
     if args.batch_size is not None or args.obj_ids is not None:
         s = cfg.stream
-        changes["stream"] = StreamSettings(
+        # every other stream setting (curriculum, distance, ...) is kept
+        changes["stream"] = dataclasses.replace(
+            s,
             batch_size=args.batch_size if args.batch_size is not None else s.batch_size,
             obj_ids=args.obj_ids if args.obj_ids is not None else s.obj_ids,
-            augment=s.augment,
-            occlusion=s.occlusion,
         )
         if args.obj_ids is not None:
             changes["model"] = dataclasses.replace(cfg.model, n_objects=len(args.obj_ids))
     if changes:
         cfg = cfg.replace(**changes)
-    cfg = apply_overrides(cfg, args.overrides)
+    return apply_overrides(cfg, args.overrides)
+
+
+def main(argv: list[str]) -> int:
+    args = build_parser().parse_args(argv)
+    dist = (args.coordinator, args.num_processes, args.process_id)
+    if any(x is not None for x in dist):
+        if any(x is None for x in dist):
+            raise ValueError("--coordinator, --num-processes and --process-id must be given together")
+        from sc6d_jax.train.loop import initialize_distributed
+
+        initialize_distributed(args.coordinator, args.num_processes, args.process_id)
+
+    from sc6d_jax.train.loop import NonFiniteLossError, train
+
+    if args.workers is not None and args.workers < 0:
+        raise ValueError(f"--workers must be >= 0, got {args.workers}")
+    cfg = build_config(args)
     try:
         train(
             cfg, args.models, args.out, resume=args.resume, workers=args.workers,

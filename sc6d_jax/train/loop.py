@@ -126,10 +126,11 @@ def _default_data_fns() -> DataFns:
 def make_optimizer(cfg: TrainConfig) -> tuple[optax.GradientTransformation, optax.Schedule]:
     """AdamW with cosine decay ``lr -> lr_end`` over ``cfg.steps`` (after optional linear warm-up)."""
     o = cfg.optim
-    if o.warmup_steps >= cfg.steps:
-        raise ValueError(f"optim.warmup_steps ({o.warmup_steps}) must be smaller than steps ({cfg.steps})")
-    if o.warmup_steps > 0:
-        sched = optax.warmup_cosine_decay_schedule(0.0, o.lr, o.warmup_steps, cfg.steps, o.lr_end)
+    warmup = cfg.warmup_steps
+    if warmup >= cfg.steps:
+        raise ValueError(f"optim.warmup_steps ({warmup}) must be smaller than steps ({cfg.steps})")
+    if warmup > 0:
+        sched = optax.warmup_cosine_decay_schedule(0.0, o.lr, warmup, cfg.steps, o.lr_end)
     else:
         sched = optax.cosine_decay_schedule(o.lr, cfg.steps, alpha=o.lr_end / o.lr)
     tx = optax.adamw(sched, b1=o.b1, b2=o.b2, eps=o.eps, weight_decay=o.weight_decay)
@@ -322,8 +323,8 @@ def train(
     )
     if cfg.stream.occlusion is not None:
         common["occlusion"] = cfg.stream.occlusion
-    if cfg.stream.curriculum:
-        common["curriculum"] = cfg.stream.curriculum
+    if cfg.curriculum_steps:
+        common["curriculum"] = cfg.curriculum_steps
     if cfg.stream.distance is not None:
         common["distance"] = cfg.stream.distance
     scfg = data_fns.stream_config(batch_size=local_bs, seed=_process_seed(cfg.seed, pidx, pcount), **common)
@@ -332,7 +333,12 @@ def train(
         obj_ids = tuple(int(i) for i in stream.obj_ids)
         if cfg.z_range is None:
             zcfg = scfg if pcount == 1 else data_fns.stream_config(batch_size=gbs, seed=cfg.seed, **common)
-            z_range = tuple(float(x) for x in data_fns.z_range(zcfg))
+            if getattr(cfg.loss, "z_norm", "none") == "focal":
+                from sc6d_jax.model import F_REF
+
+                z_range = tuple(float(x) for x in data_fns.z_range(zcfg, focal_ref=F_REF))
+            else:
+                z_range = tuple(float(x) for x in data_fns.z_range(zcfg))
         else:
             z_range = cfg.z_range
         cfg = cfg.replace(
@@ -405,35 +411,48 @@ def train(
             if verbose and pidx == 0:
                 print(f"sc6d train: {run_dir} is already complete ({start} steps)", flush=True)
             return _host_tree(params)
-        return _loop(
-            cfg, stream, step_fn, sched, params, opt_state, base_key, start, run_dir, metrics_path,
-            data_sh, rep, local_bs, latest, extra_meta, progress and pidx == 0, pidx == 0,
+        validator = None
+        if cfg.val_crops and pidx == 0 and data_fns.stream is _default_data_fns().stream:
+            from sc6d_jax.train.validate import Validator
+
+            validator = Validator(cfg, models_dir, n=cfg.val_crops)
+        run = _Run(
+            cfg=cfg, stream=stream, step_fn=step_fn, sched=sched, run_dir=run_dir, metrics_path=metrics_path,
+            data_sh=data_sh, rep=rep, local_bs=local_bs, extra_meta=extra_meta,
+            show_bar=progress and pidx == 0, writer=pidx == 0, validator=validator,
         )
+        return _loop(run, params, opt_state, base_key, start, latest)
     finally:
         close = getattr(stream, "close", None)
         if close is not None:
             close()
 
 
-def _loop(
-    cfg: TrainConfig,
-    stream: Iterator[dict[str, Any]],
-    step_fn: Callable[..., Any],
-    sched: optax.Schedule,
-    params: Any,
-    opt_state: Any,
-    base_key: jax.Array,
-    start: int,
-    run_dir: Path,
-    metrics_path: Path,
-    data_sh: NamedSharding,
-    rep: NamedSharding,
-    local_bs: int,
-    last_ckpt: Path | None,
-    extra_meta: dict[str, Any],
-    show_bar: bool,
-    writer: bool,
-) -> Any:
+@dataclasses.dataclass(frozen=True)
+class _Run:
+    """What the step loop needs besides the training state: the resolved config, the stream and
+    the compiled step, where to write, the shardings, and who shows and writes what."""
+
+    cfg: TrainConfig
+    stream: Iterator[dict[str, Any]]
+    step_fn: Callable[..., Any]
+    sched: optax.Schedule
+    run_dir: Path
+    metrics_path: Path
+    data_sh: NamedSharding
+    rep: NamedSharding
+    local_bs: int
+    extra_meta: dict[str, Any]
+    show_bar: bool
+    writer: bool
+    validator: Callable[[Any], dict[str, float]] | None = None
+
+
+def _loop(run: _Run, params: Any, opt_state: Any, base_key: jax.Array, start: int, last_ckpt: Path | None) -> Any:
+    """Steps ``start .. cfg.steps`` of a run from the given state; returns the final parameters."""
+    cfg, stream, step_fn, sched = run.cfg, run.stream, run.step_fn, run.sched
+    run_dir, metrics_path, data_sh, rep = run.run_dir, run.metrics_path, run.data_sh, run.rep
+    local_bs, extra_meta, show_bar, writer, validator = run.local_bs, run.extra_meta, run.show_bar, run.writer, run.validator
     from tqdm.auto import tqdm
 
     gbs = cfg.stream.batch_size
@@ -444,6 +463,7 @@ def _loop(
     window: list[dict[str, float]] = []
     t0 = t_win = time.perf_counter()
     n_win = 0
+    val_s = 0.0  # time spent validating, left out of train_s
     it = iter(stream)
     mfile = open(metrics_path, "a", encoding="utf-8") if writer else None
 
@@ -465,6 +485,7 @@ def _loop(
                 rec["lr"] = float(sched(done - 1))
                 rec["crops_per_s"] = n_win * gbs / max(now - t_win, 1e-9)
                 rec["elapsed_s"] = now - t0
+                rec["train_s"] = now - t0 - val_s
                 window.clear()
                 t_win, n_win = now, 0
                 if mfile is not None:
@@ -492,6 +513,17 @@ def _loop(
                     )
                 else:
                     jax.block_until_ready(params)
+                if validator is not None and writer:
+                    tv = time.perf_counter()
+                    vrec = {"step": done, **validator(params)}
+                    val_s += time.perf_counter() - tv
+                    vrec["train_s"] = time.perf_counter() - t0 - val_s
+                    vrec["val_s"] = time.perf_counter() - tv
+                    mfile.write(json.dumps(vrec) + "\n")
+                    mfile.flush()
+                    bar.set_postfix({"val_rot": f"{vrec['val_rot_median_deg']:.1f}",
+                                     "val_dz": f"{100 * vrec['val_depth_rel_median']:.1f}%",
+                                     "val_ar": f"{vrec['val_ar']:.3f}"}, refresh=False)
         drain()
     finally:
         bar.close()

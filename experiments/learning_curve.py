@@ -1,0 +1,194 @@
+"""Learning curves: train several configurations on the same objects and validation crops, one
+after the other, and plot validation AR, rotation error and depth error against training minutes
+and crops per object.
+
+    python experiments/learning_curve.py --out runs/lc1 --obj-ids 1 --steps 2000 \\
+        --config base: --config norm:loss.z_norm=focal,loss.z_bins=log
+
+Each ``--config NAME:KEY=VALUE,KEY=VALUE`` is a ``--set`` list applied to ``--preset`` (empty after
+the colon = the preset itself). Every run validates at each checkpoint on the same held-out crops
+(``sc6d_jax.train.validate``: the run's seed, never trained on), so the curves are a same-run
+A/B. Runs are sequential (two cores run one training at a time) and resumable: a finished run is
+skipped, an interrupted one resumed. Writes ``OUT/curves.csv`` (one row per run and checkpoint)
+and ``OUT/curves.png``; ``--test-images N`` also renders N test images of the objects (clutter,
+occlusion; the ``sc6d render`` set) and scores each run's final model on them with the BOP19 AR
+and the pose-error breakdown (``OUT/test.csv``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+COLUMNS = ("config", "step", "train_min", "crops_per_object", "val_ar", "val_rot_median_deg",
+           "val_depth_rel_median", "val_centre_median_px", "val_rot_under_10", "val_depth_under_2pct")
+
+
+def parse_config(text: str) -> tuple[str, list[str]]:
+    if ":" not in text:
+        raise ValueError(f"--config expects NAME:KEY=VALUE,... (e.g. norm:loss.z_norm=focal), got {text!r}")
+    name, _, rest = text.partition(":")
+    if not name or any(c in name for c in "/ ,"):
+        raise ValueError(f"--config name {name!r} must be non-empty without '/', ' ' or ','")
+    items = [x for x in rest.split(",") if x]
+    # a value may itself hold a comma (stream.distance=2.5,12): glue items without '=' to the previous one
+    out: list[str] = []
+    for x in items:
+        if "=" in x or not out:
+            out.append(x)
+        else:
+            out[-1] += "," + x
+    return name, out
+
+
+def curve_rows(name: str, run_dir: Path) -> list[dict]:
+    """The validation records of one run as CSV rows."""
+    cfg = json.loads((run_dir / "config.json").read_text())
+    n_obj = len(cfg["stream"]["obj_ids"])
+    bs = cfg["stream"]["batch_size"]
+    rows = []
+    for line in (run_dir / "metrics.jsonl").read_text().splitlines():
+        rec = json.loads(line)
+        if "val_ar" not in rec:
+            continue
+        rows.append({
+            "config": name, "step": rec["step"], "train_min": rec["train_s"] / 60.0,
+            "crops_per_object": rec["step"] * bs / n_obj,
+            **{k: rec[k] for k in COLUMNS if k.startswith("val_")},
+        })
+    return rows
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    names = list(dict.fromkeys(r["config"] for r in rows))
+    for name in names:
+        rs = [r for r in rows if r["config"] == name]
+        x = [r["train_min"] for r in rs]
+        axes[0].plot(x, [r["val_ar"] for r in rs], "o-", label=name)
+        axes[1].plot(x, [r["val_rot_median_deg"] for r in rs], "o-", label=name)
+        axes[2].plot(x, [100 * r["val_depth_rel_median"] for r in rs], "o-", label=name)
+    for ax, t in zip(axes, ("validation AR (MSSD, MSPD)", "median rotation error [deg]", "median depth error [%]")):
+        ax.set_xlabel("training minutes (2 CPU cores)")
+        ax.set_title(t)
+        ax.grid(alpha=0.3)
+    axes[1].set_yscale("log")
+    axes[2].set_yscale("log")
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", required=True, help="output folder (runs, curves.csv, curves.png)")
+    p.add_argument("--models", default=None, help="BOP models folder (default: the built-in objects, written to OUT/models)")
+    p.add_argument("--preset", default="cpu")
+    p.add_argument("--obj-ids", default="1", help="comma-separated object ids (default 1)")
+    p.add_argument("--steps", type=int, default=2000)
+    p.add_argument("--checkpoint-every", type=int, default=250)
+    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--config", action="append", default=[], help="NAME:KEY=VALUE,... (repeatable)")
+    p.add_argument("--test-images", type=int, default=0, help="also score each final model on N rendered test images")
+    args = p.parse_args(argv)
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    try:
+        configs = [parse_config(c) for c in (args.config or ["preset:"])]
+    except ValueError as exc:
+        print(f"learning_curve: error: {exc}", file=sys.stderr)
+        return 2
+    if len({n for n, _ in configs}) != len(configs):
+        print("learning_curve: error: config names must be distinct", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    models = Path(args.models) if args.models else out / "models"
+    if args.models is None and not models.is_dir():
+        from sc6d_jax.objects import write_models
+
+        write_models(models)
+    from sc6d_jax.train.cli import main as train_main
+
+    all_rows: list[dict] = []
+    for name, sets in configs:
+        run = out / name
+        argv_t = ["--models", str(models), "--out", str(run), "--preset", args.preset, "--obj-ids", args.obj_ids,
+                  "--steps", str(args.steps), "--checkpoint-every", str(args.checkpoint_every),
+                  "--workers", str(args.workers)]
+        for s in sets:
+            argv_t += ["--set", s]
+        if (run / "checkpoints").is_dir():
+            argv_t.append("--resume")
+        print(f"learning_curve: {name}: sc6d train {' '.join(argv_t)}", flush=True)
+        rc = train_main(argv_t)
+        if rc != 0:
+            print(f"learning_curve: error: run {name} failed (exit {rc})", file=sys.stderr)
+            return rc
+        all_rows += curve_rows(name, run)
+        _write_csv(out / "curves.csv", all_rows, COLUMNS)
+        plot(all_rows, out / "curves.png")
+    if args.test_images:
+        _test(args, out, models, [n for n, _ in configs])
+    for name, _ in configs:
+        last = [r for r in all_rows if r["config"] == name][-1]
+        print(f"{name:>16}: {last['train_min']:.1f} min, val AR {last['val_ar']:.3f}, rotation "
+              f"{last['val_rot_median_deg']:.1f} deg, depth {100 * last['val_depth_rel_median']:.2f} %")
+    print(f"learning_curve: wrote {out / 'curves.csv'} and {out / 'curves.png'}")
+    return 0
+
+
+def _write_csv(path: Path, rows: list[dict], columns) -> None:
+    tmp = path.with_suffix(".tmp")
+    with open(tmp, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(columns), extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+    tmp.replace(path)
+
+
+def _test(args, out: Path, models: Path, names: list[str]) -> None:
+    """Render a test set of the objects once and score every run's final model on it."""
+    from sc6d_jax.cli import main as sc6d
+
+    ds = out / "testset"
+    ids = args.obj_ids
+    n_obj = len(ids.split(","))
+    if not ds.is_dir():
+        imgs = max(1, args.test_images // 2)
+        rc = sc6d(["render", "--models", str(models), "--out", str(ds), "--scenes", "2", "--images-per-scene",
+                   str(imgs), "--seed", "7", "--obj-ids", ids, "--objects-per-image", str(min(n_obj, 5))])
+        if rc != 0:
+            raise SystemExit(rc)
+    rows = []
+    for name in names:
+        res = out / name / "test_results.csv"
+        scores = out / name / "test_scores.json"
+        if not scores.is_file():
+            for cmd in (["predict", "--run", str(out / name), "--dataset", str(ds), "--out", str(res)],
+                        ["eval", "--dataset", str(ds), "--results", str(res), "--out", str(scores)]):
+                rc = sc6d(cmd)
+                if rc != 0:
+                    raise SystemExit(rc)
+        sc = json.loads(scores.read_text())
+        b = sc.get("breakdown", {}).get("overall", {})
+        rows.append({"config": name, "ar": sc["bop19_average_recall"], "rot_median_deg": b.get("rot_median_deg"),
+                     "depth_rel_median": b.get("depth_rel_median"), "centre_median_px": b.get("centre_median_px")})
+        print(f"{name:>16}: test AR {rows[-1]['ar']:.3f}, rotation {b.get('rot_median_deg')}, depth {b.get('depth_rel_median')}")
+    _write_csv(out / "test.csv", rows, ("config", "ar", "rot_median_deg", "depth_rel_median", "centre_median_px"))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
