@@ -41,6 +41,7 @@ __all__ = [
     "load_checkpoint",
     "read_checkpoint",
     "read_meta",
+    "read_metrics_upto",
     "save_checkpoint",
     "unflatten_like",
     "verify_state",
@@ -289,3 +290,20 @@ def load_checkpoint(run_dir: str | os.PathLike, step: int | None = None) -> tupl
     template = jax.eval_shape(lambda p: p, init(jax.random.PRNGKey(0), cfg.model))  # eager: init may use numpy
     params, _, _, _ = read_checkpoint(ckpt, template, None)
     return params, cfg
+
+
+def read_metrics_upto(path: Path, upto: int) -> list[str]:
+    """Lines of a run's ``metrics.jsonl`` with an integer step <= ``upto``, without newlines
+    (what a resume from the checkpoint of step ``upto`` keeps; a torn line from a kill is dropped)."""
+    path = Path(path)
+    if not path.is_file():
+        return []
+    keep = []
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(rec, dict) and isinstance(rec.get("step"), int) and rec["step"] <= upto:
+            keep.append(line)
+    return keep

@@ -42,6 +42,8 @@ from sc6d_jax.metrics._bop19 import (
     _top_n,
     _valid_gts,
 )
+from sc6d_jax.metrics._pose_error import _rot
+from sc6d_jax.metrics._pose_error import _vec as _vec31
 from sc6d_jax.metrics._symmetry import symmetry_transformations
 
 ROT_THRESHOLDS_DEG: tuple[float, ...] = (5.0, 10.0, 20.0)
@@ -56,22 +58,9 @@ SUMMARY_KEYS: tuple[str, ...] = (
 
 
 # ----------------------------------------------------------------------------- validation
-def _rot(R: Any, name: str) -> np.ndarray:
-    R = np.asarray(R, dtype=np.float64)
-    if R.shape != (3, 3):
-        raise ValueError(f"{name} must have shape (3, 3), got {R.shape}")
-    if not np.isfinite(R).all():
-        raise ValueError(f"{name} must be finite")
-    return R
-
-
 def _vec(t: Any, name: str) -> np.ndarray:
-    t = np.asarray(t, dtype=np.float64)
-    if t.size != 3 or t.shape not in ((3,), (3, 1), (1, 3)):
-        raise ValueError(f"{name} must have 3 elements (shape (3,) or (3, 1)), got {t.shape}")
-    if not np.isfinite(t).all():
-        raise ValueError(f"{name} must be finite")
-    return t.reshape(3)
+    """A translation as a flat (3,) float64 array (validated as in the pose errors)."""
+    return _vec31(t, name).reshape(3)
 
 
 def _sym_rotations(sym_rotations: Any) -> np.ndarray:

@@ -170,28 +170,26 @@ def _z_axis(lcfg: LossConfig, z_range: tuple[float, float]) -> tuple[float, floa
     return d_lo, d_hi
 
 
+def _code_scale(K: jax.Array | None, lcfg: LossConfig) -> jax.Array | float:
+    """code / delta_z: 1 for z_norm="none", F_REF / sqrt(fx fy) of the image K for "focal"."""
+    if lcfg.z_norm == "none":
+        return 1.0
+    if K is None:
+        raise ValueError("z_norm='focal' needs the image intrinsics K")
+    K = jnp.asarray(K, jnp.float32)
+    return F_REF / jnp.sqrt(K[..., 0, 0] * K[..., 1, 1])
+
+
 def z_code(delta_z: jax.Array, K: jax.Array | None, lcfg: LossConfig) -> jax.Array:
     """The depth code the z head predicts: delta_z (paper) or delta_z * F_REF / f (z_norm="focal").
 
     K: (B,3,3) image intrinsics (only read for z_norm="focal")."""
-    if lcfg.z_norm == "none":
-        return delta_z
-    if K is None:
-        raise ValueError("z_norm='focal' needs the image intrinsics K")
-    K = jnp.asarray(K, jnp.float32)
-    f = jnp.sqrt(K[..., 0, 0] * K[..., 1, 1])
-    return delta_z * (F_REF / f)
+    return delta_z * _code_scale(K, lcfg)
 
 
 def code_to_delta_z(code: jax.Array, K: jax.Array | None, lcfg: LossConfig) -> jax.Array:
     """Inverse of :func:`z_code`: the paper's delta_z = t_z s_B / S from a decoded code."""
-    if lcfg.z_norm == "none":
-        return code
-    if K is None:
-        raise ValueError("z_norm='focal' needs the image intrinsics K")
-    K = jnp.asarray(K, jnp.float32)
-    f = jnp.sqrt(K[..., 0, 0] * K[..., 1, 1])
-    return code * (f / F_REF)
+    return code / _code_scale(K, lcfg)
 
 
 def predict_z(out: dict, lcfg: LossConfig, z_range: tuple[float, float]) -> jax.Array:

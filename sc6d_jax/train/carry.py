@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from sc6d_jax._io import atomic_directory
-from sc6d_jax.checkpoint import checkpoint_dirs, verify_state
+from sc6d_jax.checkpoint import checkpoint_dirs, read_metrics_upto, verify_state
 
 __all__ = ["CARRY_FORMAT", "Carried", "carry", "main"]
 
@@ -63,22 +63,6 @@ def _read_json(path: Path, what: str) -> Any:
         raise FileNotFoundError(f"{path} does not exist: {what}") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ValueError(f"{path} is not valid JSON ({exc})") from None
-
-
-def _metrics_upto(path: Path, upto: int) -> str:
-    """The lines of ``metrics.jsonl`` with an integer step <= ``upto`` (as ``train`` keeps them on
-    resume; a torn last line from a kill is dropped)."""
-    if not path.is_file():
-        return ""
-    keep = []
-    for line in path.read_text(encoding="utf-8").splitlines():
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if isinstance(rec, dict) and isinstance(rec.get("step"), int) and rec["step"] <= upto:
-            keep.append(line + "\n")
-    return "".join(keep)
 
 
 def _write(path: Path, data: bytes) -> None:
@@ -152,7 +136,7 @@ def carry(run_dir: str | os.PathLike, out: str | os.PathLike) -> Carried:
         raise ValueError(f"checkpoint {ckpt} was written for another config than {cfg_path}; "
                          f"differing: {'; '.join(diff)}")
     _check_out(out, run_dir, config, step)
-    metrics = _metrics_upto(run_dir / "metrics.jsonl", step)
+    metrics = "".join(line + "\n" for line in read_metrics_upto(run_dir / "metrics.jsonl", step))
     info = {
         "format": CARRY_FORMAT,
         "step": step,

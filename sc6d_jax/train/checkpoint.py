@@ -7,28 +7,5 @@ shipped models read checkpoints without the training package); this name is kept
 
 from __future__ import annotations
 
-from sc6d_jax.checkpoint import (
-    CHECKPOINT_FORMAT,
-    checkpoint_dirs,
-    find_checkpoint,
-    flatten_with_paths,
-    load_checkpoint,
-    read_checkpoint,
-    read_meta,
-    save_checkpoint,
-    unflatten_like,
-    verify_state,
-)
-
-__all__ = [
-    "CHECKPOINT_FORMAT",
-    "checkpoint_dirs",
-    "find_checkpoint",
-    "flatten_with_paths",
-    "load_checkpoint",
-    "read_checkpoint",
-    "read_meta",
-    "save_checkpoint",
-    "unflatten_like",
-    "verify_state",
-]
+from sc6d_jax.checkpoint import *  # noqa: F401,F403
+from sc6d_jax.checkpoint import __all__  # noqa: F401

@@ -37,8 +37,9 @@ import optax
 from jax.sharding import NamedSharding, PartitionSpec
 
 from sc6d_jax._io import atomic_write_text
-from sc6d_jax.train.checkpoint import (
+from sc6d_jax.checkpoint import (
     checkpoint_dirs,
+    read_metrics_upto,
     read_checkpoint,
     read_meta,
     save_checkpoint,
@@ -232,21 +233,6 @@ def _global_batch(batch: dict[str, Any], sharding: NamedSharding, local_bs: int,
     return out
 
 
-def _read_metrics(path: Path, upto: int) -> list[str]:
-    """Lines of metrics.jsonl with step <= upto (unparseable lines from a kill are dropped)."""
-    if not path.is_file():
-        return []
-    keep = []
-    for line in path.read_text(encoding="utf-8").splitlines():
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if isinstance(rec, dict) and isinstance(rec.get("step"), int) and rec["step"] <= upto:
-            keep.append(line)
-    return keep
-
-
 # -- the program ----------------------------------------------------------------------------------
 def train(
     cfg: TrainConfig,
@@ -404,7 +390,7 @@ def train(
         if pidx == 0:
             run_dir.mkdir(parents=True, exist_ok=True)
             atomic_write_text(cfg_path, cfg.to_json())
-            kept = _read_metrics(metrics_path, start)
+            kept = read_metrics_upto(metrics_path, start)
             atomic_write_text(metrics_path, "".join(line + "\n" for line in kept))
 
         if start >= cfg.steps:
