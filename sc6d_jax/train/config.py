@@ -382,6 +382,7 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
             steps=400,
             checkpoint_every=100,
             log_every=20,
+            val_crops=64,
         )
     else:
         raise ValueError(f"unknown preset {name!r}; available presets: {', '.join(PRESETS)}")
