@@ -453,7 +453,15 @@ def _loop(run: _Run, params: Any, opt_state: Any, base_key: jax.Array, start: in
     it = iter(stream)
     mfile = open(metrics_path, "a", encoding="utf-8") if writer else None
 
-    def drain() -> None:
+    held: list[dict[str, Any]] = []  # the record of a checkpoint step, written with its validation
+
+    def write(rec: dict[str, Any]) -> None:
+        if mfile is not None:
+            mfile.write(json.dumps(rec) + "\n")
+            mfile.flush()
+
+    def drain(hold: int | None = None) -> None:
+        """Log the pending steps' metrics; the record of step ``hold`` is kept in ``held``."""
         nonlocal t_win, n_win
         while pending:
             done, m = pending.pop(0)
@@ -474,9 +482,10 @@ def _loop(run: _Run, params: Any, opt_state: Any, base_key: jax.Array, start: in
                 rec["train_s"] = now - t0 - val_s
                 window.clear()
                 t_win, n_win = now, 0
-                if mfile is not None:
-                    mfile.write(json.dumps(rec) + "\n")
-                    mfile.flush()
+                if done == hold:
+                    held.append(rec)
+                else:
+                    write(rec)
                 post = {k: f"{v:.4g}" for k, v in rec.items() if k not in ("step", "lr", "elapsed_s", "crops_per_s")}
                 post["crops/s"] = f"{rec['crops_per_s']:.0f}"
                 bar.set_postfix(post, refresh=False)
@@ -491,7 +500,8 @@ def _loop(run: _Run, params: Any, opt_state: Any, base_key: jax.Array, start: in
             pending.append((done, m))
             bar.update(1)
             if done % cfg.checkpoint_every == 0 or done == cfg.steps:
-                drain()
+                validating = validator is not None and writer
+                drain(hold=done if validating else None)
                 if writer:
                     last_ckpt = save_checkpoint(
                         run_dir, done, params, opt_state, base_key, cfg_dict,
@@ -499,14 +509,14 @@ def _loop(run: _Run, params: Any, opt_state: Any, base_key: jax.Array, start: in
                     )
                 else:
                     jax.block_until_ready(params)
-                if validator is not None and writer:
+                if validating:
+                    # the step's record gets the validation fields (one line per logged step)
                     tv = time.perf_counter()
-                    vrec = {"step": done, **validator(params)}
+                    vrec = held.pop() if held else {"step": done, "train_s": tv - t0 - val_s}
+                    vrec.update(validator(params))
                     val_s += time.perf_counter() - tv
-                    vrec["train_s"] = time.perf_counter() - t0 - val_s
                     vrec["val_s"] = time.perf_counter() - tv
-                    mfile.write(json.dumps(vrec) + "\n")
-                    mfile.flush()
+                    write(vrec)
                     bar.set_postfix({"val_rot": f"{vrec['val_rot_median_deg']:.1f}",
                                      "val_dz": f"{100 * vrec['val_depth_rel_median']:.1f}%",
                                      "val_ar": f"{vrec['val_ar']:.3f}"}, refresh=False)
