@@ -85,15 +85,21 @@ class Validator:
         grid = so3_grid(*_grid_shape(lib_size))
         self.lib_R = jnp.asarray(grid, jnp.float32)
         self._fn = jax.jit(self._predict)
+        self._embed = jax.jit(self._embed_grid)
 
-    def _predict(self, params: Any, rgb, pe, K, center, side, obj_idx) -> dict[str, jax.Array]:
+    def _embed_grid(self, params: Any) -> jax.Array:
+        """(O, N, E) embeddings of the grid for every object: once per call, not per batch."""
+        from sc6d_jax.model import encode_rotations
+
+        return jnp.stack([encode_rotations(params, self.cfg.model, self.lib_R, o) for o in range(self.cfg.model.n_objects)])
+
+    def _predict(self, params: Any, lib, rgb, pe, K, center, side, obj_idx) -> dict[str, jax.Array]:
         from sc6d_jax.geometry import allocentric_to_egocentric, decode_translation
-        from sc6d_jax.model import apply, decode_delta_z, encode_rotations
+        from sc6d_jax.model import apply, decode_delta_z
 
         cfg = self.cfg
         mcfg = cfg.model
         out = apply(params, mcfg, rgb, pe if mcfg.use_pe else None, obj_idx)
-        lib = jnp.stack([encode_rotations(params, mcfg, self.lib_R, o) for o in range(mcfg.n_objects)])  # (O,N,E)
         cos = jnp.einsum("be,bne->bn", out["rot_emb"], lib[obj_idx])
         R_allo = self.lib_R[jnp.argmax(cos, axis=-1)]
         dz = decode_delta_z(out, cfg.loss, cfg.z_range, K)
@@ -103,10 +109,11 @@ class Validator:
     def predict(self, params: Any) -> dict[str, np.ndarray]:
         """Estimated R (n,3,3) and t (n,3) mm of every validation crop."""
         d = self.data
+        lib = self._embed(params)
         outs = []
         for s in range(0, self.n, self.batch):
             sl = slice(s, s + self.batch)
-            o = self._fn(params, jnp.asarray(d["rgb"][sl]), jnp.asarray(d["pe"][sl]), jnp.asarray(d["K"][sl]),
+            o = self._fn(params, lib, jnp.asarray(d["rgb"][sl]), jnp.asarray(d["pe"][sl]), jnp.asarray(d["K"][sl]),
                          jnp.asarray(d["center"][sl]), jnp.asarray(d["side"][sl]), jnp.asarray(d["obj_idx"][sl]))
             outs.append({k: np.asarray(v, np.float64) for k, v in o.items()})
         return {k: np.concatenate([o[k] for o in outs]) for k in ("R", "t")}
