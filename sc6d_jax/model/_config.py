@@ -41,6 +41,9 @@ class ModelConfig:
     - head_hidden: FC width of the three heads (256); so3_hidden: SO(3) encoder width (256).
     - ipdf_hidden: width of the IPDF MLP (256); ipdf_pe_freqs: positional-encoding
       frequencies of the rotation input to IPDF (0 = the raw 9 matrix entries).
+    - so3_pe_freqs: the same encoding of the SO(3) encoder's input (0 = the raw 9 entries,
+      paper): sin/cos(2^k pi r) for k < so3_pe_freqs lets the encoder make embeddings that turn
+      within a few degrees (an MLP on the raw entries is smooth at the scale of tens of degrees).
     - gn_groups: maximum GroupNorm groups (32; fewer when channels are few).
     - mask_gate: multiply the decoder features by sigmoid(mask logit) before the pose decoder,
       so that clutter and occluders reach the heads damped by the predicted visible mask
@@ -67,6 +70,7 @@ class ModelConfig:
     so3_hidden: int = 256
     ipdf_hidden: int = 256
     ipdf_pe_freqs: int = 0
+    so3_pe_freqs: int = 0
     gn_groups: int = 32
     mask_gate: bool = False
     z_size_input: bool = False
@@ -87,8 +91,8 @@ class ModelConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name} must be a positive int, got {v!r}")
-        if self.decoder_width < 0 or self.ipdf_pe_freqs < 0:
-            raise ValueError("decoder_width and ipdf_pe_freqs must be >= 0")
+        if self.decoder_width < 0 or self.ipdf_pe_freqs < 0 or self.so3_pe_freqs < 0:
+            raise ValueError("decoder_width, ipdf_pe_freqs and so3_pe_freqs must be >= 0")
 
     @property
     def in_channels(self) -> int:

@@ -3,7 +3,7 @@
 Both are reached through :func:`rotation_logits`, so losses and inference do not care which
 head a model uses.
 
-* ``rot_head="so3"``: R (row-major 9 values) -> FC so3_hidden -> ReLU -> FC so3_hidden ->
+* ``rot_head="so3"``: R (row-major 9 values, plus sin/cos(2^k pi r) for k < so3_pe_freqs) -> FC so3_hidden -> ReLU -> FC so3_hidden ->
   ReLU -> per-object FC emb_dim, L2-normalised. logit = cos(image emb, rotation emb) / tau.
 * ``rot_head="ipdf"`` (Murphy et al. 2021; the authors' ``IPDF_Encoder``): a per-object MLP
   on [image embedding, rotation encoding] -> ipdf_hidden -> ReLU -> ipdf_hidden -> ReLU -> 1.
@@ -47,7 +47,7 @@ def init_rotation_head(key: np.random.Generator, cfg: ModelConfig) -> dict:
     if cfg.rot_head == "so3":
         h = cfg.so3_hidden
         return {
-            "fc1": init_dense(k1, 9, h),
+            "fc1": init_dense(k1, 9 * (1 + 2 * cfg.so3_pe_freqs), h),
             "fc2": init_dense(k2, h, h),
             "out": _init_stacked_dense(k3, cfg.n_objects, h, cfg.emb_dim, scale=1.0),
         }
@@ -76,7 +76,7 @@ def encode_rotations(params: dict, cfg: ModelConfig, R: jax.Array, obj_idx: jax.
     if R.shape[-2:] != (3, 3):
         raise ValueError(f"R must have shape (..., 3, 3), got {R.shape}")
     p = params.get("rot_head", params)
-    h = _hidden(p, R)
+    h = _hidden(p, cfg, R)
     obj = jnp.asarray(obj_idx, jnp.int32)
     w = p["out"]["w"][obj]  # (...,h,E)
     b = p["out"]["b"][obj]
@@ -87,8 +87,8 @@ def encode_rotations(params: dict, cfg: ModelConfig, R: jax.Array, obj_idx: jax.
     return _l2n(e)
 
 
-def _hidden(p: dict, R: jax.Array) -> jax.Array:
-    x = R.reshape(*R.shape[:-2], 9)
+def _hidden(p: dict, cfg: ModelConfig, R: jax.Array) -> jax.Array:
+    x = rotation_features(R, cfg.so3_pe_freqs)
     h = jax.nn.relu(dense(x, p["fc1"]["w"], p["fc1"]["b"]))
     return jax.nn.relu(dense(h, p["fc2"]["w"], p["fc2"]["b"]))
 
@@ -124,7 +124,7 @@ def rotation_logits(
 
 
 def _so3_logits(p: dict, cfg: ModelConfig, img: jax.Array, R: jax.Array, obj_idx: jax.Array) -> jax.Array:
-    h = _hidden(p, R)  # (Q,H) or (B,Q,H)
+    h = _hidden(p, cfg, R)  # (Q,H) or (B,Q,H)
     n_obj = cfg.n_objects
     if R.ndim == 3 and (n_obj == 1 or n_obj <= img.shape[0]):
         # embeddings of the shared set once per object, then pick each sample's object
