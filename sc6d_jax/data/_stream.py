@@ -56,6 +56,10 @@ class StreamConfig:
         distance: camera distance range in object diameters.
         background: "textured" (procedural patterns) or "plain" (one random colour per crop):
             plain backgrounds and no occlusion make a much easier task for tiny smoke runs.
+        dense: also render depth and return dense geometric targets of the target's visible
+            surface at S/4 (``dense_targets``): its normals in the allocentric frame of the
+            rotation label and its depth relative to the object centre in diameters. They
+            need no symmetry labels (they describe what the crop shows).
         curriculum: number of batches over which the task grows from easy to the full setting
             (0 = full from the start). At batch b the difficulty is d = min(1, b / curriculum):
             a crop gets a textured background with probability d (else a plain one) and
@@ -76,6 +80,7 @@ class StreamConfig:
     distance: tuple[float, float] = (2.5, 9.0)
     background: str = "textured"
     curriculum: int = 0
+    dense: bool = False
 
     def __post_init__(self) -> None:
         if self.background not in ("textured", "plain"):
@@ -90,6 +95,61 @@ class StreamConfig:
             raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
         if self.workers < 0:
             raise ValueError(f"workers must be >= 0, got {self.workers}")
+
+
+def dense_targets(
+    depth: np.ndarray, mask: np.ndarray, K_B: np.ndarray, R: np.ndarray, R_allo: np.ndarray, t: np.ndarray,
+    diameter: np.ndarray, factor: int = 4,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Dense targets of the target's visible surface, averaged over ``factor`` x ``factor`` blocks.
+
+    depth (B,S,S) mm along the optical axis of the crop camera K_B (B,3,3); mask (B,S,S) the
+    target's visible pixels; R, R_allo (B,3,3) its egocentric and allocentric rotations, t (B,3)
+    mm, diameter (B,) mm. Returns ``dense`` float32 (B,S/f,S/f,4): the unit surface normal (from
+    the back-projected depth's central differences, turned into the allocentric frame of the
+    rotation label, facing the camera) and (depth - t_z) / diameter; and ``weight`` float32
+    (B,S/f,S/f): the fraction of each block's pixels where the target and its four neighbours are
+    visible (0 = no target there; the normal is then 0).
+    """
+    depth = np.asarray(depth, np.float32)
+    B, S, _ = depth.shape
+    f = factor
+    ramp = np.arange(S, dtype=np.float32)
+    fx, fy = K_B[:, 0, 0].astype(np.float32), K_B[:, 1, 1].astype(np.float32)
+    xs = (ramp[None] - K_B[:, 0, 2, None].astype(np.float32)) / fx[:, None]  # (B,S): X / Z along u
+    ys = (ramp[None] - K_B[:, 1, 2, None].astype(np.float32)) / fy[:, None]
+    X = depth * xs[:, None, :]
+    Y = depth * ys[:, :, None]
+    vis = (np.asarray(mask) > 0) & (depth > 0)
+    ok = np.zeros_like(vis)
+    ok[:, 1:-1, 1:-1] = vis[:, 1:-1, 1:-1] & vis[:, :-2, 1:-1] & vis[:, 2:, 1:-1] & vis[:, 1:-1, :-2] & vis[:, 1:-1, 2:]
+    c = (slice(None), slice(1, -1), slice(1, -1))
+    # central differences along u (a) and v (b) of the back-projected points, inner pixels only
+    ax, ay, az = (M[:, 1:-1, 2:] - M[:, 1:-1, :-2] for M in (X, Y, depth))
+    bx, by, bz = (M[:, 2:, 1:-1] - M[:, :-2, 1:-1] for M in (X, Y, depth))
+    nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    inv = 1.0 / (np.sqrt(nx * nx + ny * ny + nz * nz) + 1e-12)
+    facing = np.where(nx * X[c] + ny * Y[c] + nz * depth[c] > 0, -inv, inv)  # n . P < 0: towards the camera
+    w = ok.astype(np.float32)
+    n = np.zeros((B, S, S, 3), np.float32)
+    n[:, 1:-1, 1:-1, 0] = nx * facing * w[c]
+    n[:, 1:-1, 1:-1, 1] = ny * facing * w[c]
+    n[:, 1:-1, 1:-1, 2] = nz * facing * w[c]
+    rel = (depth - t[:, 2, None, None].astype(np.float32)) / np.asarray(diameter, np.float32)[:, None, None]
+
+    def blocks(a: np.ndarray) -> np.ndarray:
+        return a.reshape(B, S // f, f, S // f, f, *a.shape[3:]).sum(axis=(2, 4))
+
+    wsum = blocks(w)
+    n_avg = blocks(n)
+    n_avg /= np.linalg.norm(n_avg, axis=-1, keepdims=True) + 1e-12
+    # camera frame -> allocentric frame of the label (R_allo R^T), after averaging (it is linear)
+    to_allo = np.einsum("bij,bkj->bik", R_allo, R).astype(np.float32)
+    n_avg = np.einsum("bij,bhwj->bhwi", to_allo, n_avg)
+    rel_avg = blocks(rel * w) / np.maximum(wsum, 1e-12)
+    dense = np.concatenate([n_avg, rel_avg[..., None]], axis=-1)
+    dense[wsum == 0] = 0.0
+    return dense.astype(np.float32), (wsum / (f * f)).astype(np.float32)
 
 
 def resolve_obj_ids(cfg: StreamConfig) -> list[int]:
@@ -206,12 +266,14 @@ class _Worker:
             for _ in range(rng.integers(1, 3))
         ]
         self.renderer.set_lights(lights, headlight=(rng.uniform(0.1, 0.4), rng.uniform(0.1, 0.5)))
-        out = self.renderer.render(objects, K_B, primitives=prims, background=self.background(rng, difficulty), depth=False)
+        out = self.renderer.render(
+            objects, K_B, primitives=prims, background=self.background(rng, difficulty), depth=cfg.dense
+        )
         mask = out.mask_visib[0]
         n_vis = int(mask.sum())
         if n_vis < MIN_VISIBLE_PX or n_vis < MIN_VISIBLE_FRACTION * S * S:
             return None
-        return out.rgb, mask
+        return out.rgb, mask, out.depth
 
     def batch(self, b: int) -> dict[str, np.ndarray]:
         """Batch ``b``: sample j draws from default_rng([seed, b, j]) only. Labels (translation
@@ -221,12 +283,12 @@ class _Worker:
         cfg, B, S = self.cfg, self.cfg.batch_size, self.cfg.crop_size
         rngs = [np.random.default_rng([cfg.seed, b, j]) for j in range(B)]
         poses, centers, sides, T = self._poses(rngs)
-        rgbs, masks = [None] * B, [None] * B
+        rgbs, masks, depths = [None] * B, [None] * B, [None] * B
         for j in range(B):
             for attempt in range(50):
                 got = self._render(rngs[j], poses[j], sides[j], T[j], self.difficulty(b))
                 if got is not None:
-                    rgbs[j], masks[j] = got
+                    rgbs[j], masks[j], depths[j] = got
                     break
                 p2, c2, s2, T2 = self._poses([rngs[j]])  # resample this one (rare)
                 poses[j], centers[j], sides[j], T[j] = p2[0], c2[0], s2[0], T2[0]
@@ -239,6 +301,11 @@ class _Worker:
         R_allo = np.asarray(G.egocentric_to_allocentric(R, t), np.float64)
         pe = np.asarray(G.pe_map(K, T, S), np.float32)
         rgb, mask = np.stack(rgbs), np.stack(masks)
+        dense = dense_w = None
+        if cfg.dense:
+            dense, dense_w = dense_targets(
+                np.stack(depths), mask, T @ K, R, R_allo, t, np.array([self.diameters[p.obj_id] for p in poses])
+            )
         if cfg.augment:
             for j in range(B):
                 rgb[j] = colour_augment(rngs[j], rgb[j])
@@ -250,7 +317,13 @@ class _Worker:
                     Rz = np.array([[c, -s_, 0], [s_, c, 0], [0, 0, 1]], np.float64)
                     R_allo[j] = Rz @ R_allo[j]
                     delta_xy[j] = Rz[:2, :2] @ delta_xy[j]
+                    if dense is not None:
+                        dense[j] = np.rot90(dense[j], -k)
+                        dense[j, ..., :3] = dense[j, ..., :3] @ Rz.T.astype(np.float32)
+                        dense_w[j] = np.rot90(dense_w[j], -k)
+        extra = {} if dense is None else {"dense": dense, "dense_w": dense_w}
         return dict(
+            **extra,
             rgb=rgb, pe=pe, mask_visib=mask.astype(np.uint8), R_allo=R_allo.astype(np.float32),
             R=R.astype(np.float32), t=t.astype(np.float32), K=K.astype(np.float32),
             K_B=(T @ K).astype(np.float32), delta_xy=delta_xy.astype(np.float32),

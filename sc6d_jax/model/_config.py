@@ -44,6 +44,11 @@ class ModelConfig:
     - so3_pe_freqs: the same encoding of the SO(3) encoder's input (0 = the raw 9 entries,
       paper): sin/cos(2^k pi r) for k < so3_pe_freqs lets the encoder make embeddings that turn
       within a few degrees (an MLP on the raw entries is smooth at the scale of tens of degrees).
+    - dense_head: a per-pixel linear head on the decoder features at S/4 predicting the
+      visible surface's normal (allocentric frame) and its depth relative to the object centre
+      (``out["dense"]`` (B,S/4,S/4,4)), trained by ``LossConfig.w_dense`` against the stream's
+      ``dense`` targets: geometry supervision for the features the pose decoder reads, which
+      needs no symmetry labels. Not used at inference.
     - gn_groups: maximum GroupNorm groups (32; fewer when channels are few).
     - mask_gate: multiply the decoder features by sigmoid(mask logit) before the pose decoder,
       so that clutter and occluders reach the heads damped by the predicted visible mask
@@ -71,6 +76,7 @@ class ModelConfig:
     ipdf_hidden: int = 256
     ipdf_pe_freqs: int = 0
     so3_pe_freqs: int = 0
+    dense_head: bool = False
     gn_groups: int = 32
     mask_gate: bool = False
     z_size_input: bool = False

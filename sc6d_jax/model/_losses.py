@@ -66,6 +66,9 @@ class LossConfig:
     - per_sample_negatives: draw an independent random roll per sample (vmapped over the
       batch) instead of one set of deltas shared by the batch.
     - w_rot 1, w_xy 10, w_z 1, w_mask 1: loss weights.
+    - w_dense: weight of the dense geometry loss (needs ``ModelConfig.dense_head`` and the
+      stream's ``dense`` / ``dense_w`` targets): L1 of the normal and the relative depth over
+      the visible blocks, weighted by their visible fraction (0 = off, paper).
     - mask_downsample: "area" (default: the S x S visible mask averaged over 4x4 blocks, a
       soft target in [0, 1]) or "nearest" (every 4th pixel, offset 2: a binary target).
     """
@@ -90,6 +93,7 @@ class LossConfig:
     n_local_negatives: int = 0
     local_min_deg: float = 2.0
     local_max_deg: float = 30.0
+    w_dense: float = 0.0
 
     def __post_init__(self) -> None:
         if self.z_mode not in Z_MODES:
@@ -114,7 +118,7 @@ class LossConfig:
             raise ValueError(f"tau must be > 0, got {self.tau}")
         if not isinstance(self.n_negatives, int) or self.n_negatives < 1:
             raise ValueError(f"n_negatives must be a positive int, got {self.n_negatives!r}")
-        for name in ("w_rot", "w_xy", "w_z", "w_mask", "w_z_l1", "focal_alpha", "focal_gamma"):
+        for name in ("w_rot", "w_xy", "w_z", "w_mask", "w_z_l1", "w_dense", "focal_alpha", "focal_gamma"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 
@@ -303,6 +307,8 @@ def loss_fn(
     With z_norm="focal" the batch must hold 'K' (B,3,3), the image intrinsics.
     """
     _check_batch(mcfg, batch)
+    if lcfg.w_dense > 0:
+        _check_dense(mcfg, batch)
     d_lo, d_hi = z_range
     obj_idx = jnp.asarray(batch["obj_idx"], jnp.int32)
     out = apply(params, mcfg, batch["rgb"], batch.get("pe") if mcfg.use_pe else None, obj_idx)
@@ -337,6 +343,10 @@ def loss_fn(
     loss_mask = bce_with_logits(out["mask_logit"], target)
 
     loss = lcfg.w_rot * loss_rot + lcfg.w_xy * loss_xy + lcfg.w_z * loss_z + lcfg.w_mask * loss_mask
+    extra = {}
+    if lcfg.w_dense > 0:
+        extra["loss_dense"] = dense_loss(out, batch)
+        loss = loss + lcfg.w_dense * extra["loss_dense"]
     aux = {
         "loss": loss,
         "loss_rot": loss_rot,
@@ -347,5 +357,24 @@ def loss_fn(
         "z_abs_err": jnp.mean(jnp.abs(jax.lax.stop_gradient(code_pred) - code)),
         "z_rel_err": jnp.mean(jnp.abs(jax.lax.stop_gradient(code_pred) - code) / code),
         "xy_abs_err": jnp.mean(jnp.abs(jax.lax.stop_gradient(out["delta_xy"]) - dxy)),
+        **extra,
     }
     return loss, aux
+
+
+def _check_dense(mcfg: ModelConfig, batch: dict) -> None:
+    if not mcfg.dense_head:
+        raise ValueError("loss.w_dense > 0 needs a model with model.dense_head=True")
+    if "dense" not in batch or "dense_w" not in batch:
+        raise ValueError("loss.w_dense > 0 needs a batch with 'dense' and 'dense_w' (a stream with dense=True)")
+
+
+def dense_loss(out: dict, batch: dict) -> jax.Array:
+    """L1 of the dense head's normal and relative depth against the stream's targets
+    (``batch['dense']`` (B,h,w,4)), averaged over blocks weighted by ``batch['dense_w']`` (B,h,w)."""
+    target = jnp.asarray(batch["dense"], jnp.float32)
+    w = jnp.asarray(batch["dense_w"], jnp.float32)
+    if target.shape != out["dense"].shape or w.shape != target.shape[:-1]:
+        raise ValueError(f"dense targets {target.shape} / weights {w.shape} do not match the head {out['dense'].shape}")
+    err = jnp.sum(jnp.abs(out["dense"] - target), axis=-1)
+    return jnp.sum(w * err) / (jnp.sum(w) + 1e-6)

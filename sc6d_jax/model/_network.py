@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 
 from ._config import ModelConfig
-from ._layers import make_rng, split
+from ._layers import dense, init_dense, make_rng, split
 from ._encoder import backbone, decoder, init_backbone, init_decoder
 from ._pose_decoder import init_pose_decoder, pose_decoder
 from ._rotation import _l2n, init_rotation_head
@@ -14,6 +14,8 @@ from ._rotation import _l2n, init_rotation_head
 #: ImageNet statistics (torchvision), so that converted ImageNet weights see familiar inputs.
 RGB_MEAN = (0.485, 0.456, 0.406)
 RGB_STD = (0.229, 0.224, 0.225)
+#: Channels of the dense head: surface normal (3) and depth relative to the object centre (1).
+N_DENSE = 4
 
 
 def init(key: jax.Array, cfg: ModelConfig) -> dict:
@@ -24,13 +26,16 @@ def init(key: jax.Array, cfg: ModelConfig) -> dict:
     """
     if not isinstance(cfg, ModelConfig):
         raise ValueError(f"cfg must be a ModelConfig, got {type(cfg).__name__}")
-    k1, k2, k3, k4 = split(make_rng(key), 4)
+    rng = make_rng(key)
+    k1, k2, k3, k4 = split(rng, 4)
     params = {
         "backbone": init_backbone(k1, cfg),
         "decoder": init_decoder(k2, cfg),
         "pose_decoder": init_pose_decoder(k3, cfg),
         "rot_head": init_rotation_head(k4, cfg),
     }
+    if cfg.dense_head:  # a fifth child of the generator: the other parts are drawn as without it
+        params["dense_head"] = init_dense(split(rng, 1)[0], cfg.feat_dim, N_DENSE, scale=1.0)
     return jax.tree.map(jnp.asarray, params)
 
 
@@ -63,7 +68,8 @@ def apply(
     cfg.use_pe is False). obj_idx: int (B,) object index in [0, n_objects).
 
     Returns {'rot_emb' (B,emb_dim) unit-norm image embedding, 'delta_xy' (B,2),
-    'z_logits' (B,n_z_bins), 'mask_logit' (B,S/4,S/4)}.
+    'z_logits' (B,n_z_bins), 'mask_logit' (B,S/4,S/4)}, and 'dense' (B,S/4,S/4,4) with
+    cfg.dense_head.
     """
     _check_inputs(cfg, rgb, pe, obj_idx)
     obj_idx = jnp.asarray(obj_idx, jnp.int32)
@@ -72,10 +78,13 @@ def apply(
         x = jnp.concatenate([x, pe.astype(jnp.float32)], axis=-1)
     feats = backbone(params["backbone"], cfg, x)
     feat, mask_logit = decoder(params["decoder"], cfg, feats, obj_idx)
+    extra = {}
+    if cfg.dense_head:
+        extra["dense"] = dense(feat, params["dense_head"]["w"], params["dense_head"]["b"])
     if cfg.mask_gate:
         feat = feat * jax.nn.sigmoid(mask_logit)[..., None]
     rot, dxy, zl = pose_decoder(params["pose_decoder"], cfg, feat, mask_logit)
-    return {"rot_emb": _l2n(rot), "delta_xy": dxy, "z_logits": zl, "mask_logit": mask_logit}
+    return {"rot_emb": _l2n(rot), "delta_xy": dxy, "z_logits": zl, "mask_logit": mask_logit, **extra}
 
 
 def count_params(params: dict) -> int:

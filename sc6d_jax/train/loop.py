@@ -313,6 +313,8 @@ def train(
         common["curriculum"] = cfg.curriculum_steps
     if cfg.stream.distance is not None:
         common["distance"] = cfg.stream.distance
+    if getattr(cfg.loss, "w_dense", 0) > 0:
+        common["dense"] = True
     scfg = data_fns.stream_config(batch_size=local_bs, seed=_process_seed(cfg.seed, pidx, pcount), **common)
     stream = data_fns.stream(scfg, start)
     try:
