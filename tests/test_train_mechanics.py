@@ -387,6 +387,10 @@ def test_resume_after_sigkill_is_bit_exact(tmp_path):
     assert [m["step"] for m in _metrics(run)] == list(range(1, steps + 1))
     ref_loss = [m["loss"] for m in _metrics(tmp_path / "ref" / "run")]
     assert [m["loss"] for m in _metrics(run)] == ref_loss
+    # the run's clock goes on across the legs (learning curves plot against it)
+    for key in ("train_s", "elapsed_s"):
+        ts = [m[key] for m in _metrics(run)]
+        assert all(b >= a for a, b in zip(ts, ts[1:])), key
 
 
 def test_two_host_devices_give_the_same_loss_curve(tmp_path):

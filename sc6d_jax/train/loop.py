@@ -394,6 +394,9 @@ def train(
             atomic_write_text(cfg_path, cfg.to_json())
             kept = read_metrics_upto(metrics_path, start)
             atomic_write_text(metrics_path, "".join(line + "\n" for line in kept))
+            time_offset = _time_offset(kept)
+        else:
+            time_offset = (0.0, 0.0)
 
         if start >= cfg.steps:
             if verbose and pidx == 0:
@@ -407,7 +410,7 @@ def train(
         run = _Run(
             cfg=cfg, stream=stream, step_fn=step_fn, sched=sched, run_dir=run_dir, metrics_path=metrics_path,
             data_sh=data_sh, rep=rep, local_bs=local_bs, extra_meta=extra_meta,
-            show_bar=progress and pidx == 0, writer=pidx == 0, validator=validator,
+            show_bar=progress and pidx == 0, writer=pidx == 0, validator=validator, time_offset=time_offset,
         )
         return _loop(run, params, opt_state, base_key, start, latest)
     finally:
@@ -434,6 +437,17 @@ class _Run:
     show_bar: bool
     writer: bool
     validator: Callable[[Any], dict[str, float]] | None = None
+    #: (elapsed_s, train_s) of the legs before this one, so that a resumed run's clock goes on
+    time_offset: tuple[float, float] = (0.0, 0.0)
+
+
+def _time_offset(lines: list[str]) -> tuple[float, float]:
+    """(elapsed_s, train_s) of the last record of the kept metrics lines that has them."""
+    for line in reversed(lines):
+        rec = json.loads(line)
+        if "train_s" in rec:
+            return float(rec.get("elapsed_s", rec["train_s"])), float(rec["train_s"])
+    return 0.0, 0.0
 
 
 def _loop(run: _Run, params: Any, opt_state: Any, base_key: jax.Array, start: int, last_ckpt: Path | None) -> Any:
@@ -452,6 +466,7 @@ def _loop(run: _Run, params: Any, opt_state: Any, base_key: jax.Array, start: in
     t0 = t_win = time.perf_counter()
     n_win = 0
     val_s = 0.0  # time spent validating, left out of train_s
+    off_elapsed, off_train = run.time_offset  # earlier legs of a resumed run
     it = iter(stream)
     mfile = open(metrics_path, "a", encoding="utf-8") if writer else None
 
@@ -480,8 +495,8 @@ def _loop(run: _Run, params: Any, opt_state: Any, base_key: jax.Array, start: in
                     rec[k] = float(np.mean([w[k] for w in window]))
                 rec["lr"] = float(sched(done - 1))
                 rec["crops_per_s"] = n_win * gbs / max(now - t_win, 1e-9)
-                rec["elapsed_s"] = now - t0
-                rec["train_s"] = now - t0 - val_s
+                rec["elapsed_s"] = off_elapsed + now - t0
+                rec["train_s"] = off_train + now - t0 - val_s
                 window.clear()
                 t_win, n_win = now, 0
                 if done == hold:
@@ -514,7 +529,7 @@ def _loop(run: _Run, params: Any, opt_state: Any, base_key: jax.Array, start: in
                 if validating:
                     # the step's record gets the validation fields (one line per logged step)
                     tv = time.perf_counter()
-                    vrec = held.pop() if held else {"step": done, "train_s": tv - t0 - val_s}
+                    vrec = held.pop() if held else {"step": done, "train_s": off_train + tv - t0 - val_s}
                     vrec.update(validator(params))
                     val_s += time.perf_counter() - tv
                     vrec["val_s"] = time.perf_counter() - tv
