@@ -45,7 +45,7 @@ def test_presets_roundtrip_through_json():
             paper.stream.batch_size) == (256, "resnet34", 5000, 1000, 64)
     cpu = preset("cpu")
     assert (cpu.stream.batch_size, cpu.model.crop_size) == (32, 64)
-    assert (cpu.optim.lr, cpu.optim.lr_end, cpu.optim.weight_decay) == (1e-3, 1e-5, 1e-4)
+    assert (cpu.optim.lr, cpu.optim.lr_end, cpu.optim.weight_decay) == (2e-3, 1e-5, 1e-4)
     assert cpu.steps == 18_000  # about an hour on 2 cores
     # the schedule scales with the run: curriculum 30 %, warm-up 1 %
     assert (cpu.curriculum_steps, cpu.warmup_steps) == (5_400, 180)
