@@ -179,3 +179,34 @@ def test_train_set_errors_name_the_problem(item, match, tmp_path):
     with pytest.raises(ValueError, match=match):
         main(["--models", str(tmp_path), "--out", str(tmp_path / "run"), "--preset", "tiny", "--set", item])
     assert not (tmp_path / "run").exists()
+
+
+def test_every_budget_and_row_builds_a_valid_training_config(tmp_path):
+    """What each ablation row would train, for every budget: the config parses, the rows' depth
+    settings reach it, and budgets above tiny leave out the recipe's L1 on the decoded depth."""
+    import importlib.util
+
+    from sc6d_jax.train.cli import build_config, build_parser
+
+    spec = importlib.util.spec_from_file_location("sweep_module", SWEEP)
+    sweep = importlib.util.module_from_spec(spec)
+    sys.modules["sweep_module"] = sweep  # dataclasses look their module up while the class is made
+    try:
+        spec.loader.exec_module(sweep)
+    finally:
+        del sys.modules["sweep_module"]
+    for name, budget in sweep.BUDGETS.items():
+        for row in sweep.ROWS:
+            args = sweep._train_args(budget, tmp_path / "models", tmp_path / "run", 0, row.sets)
+            cfg = build_config(build_parser().parse_args([str(a) for a in args[1:]]))
+            assert cfg.preset == budget.preset
+            for item in row.sets:
+                key, value = item.split("=")
+                section, field_ = key.split(".")
+                assert str(getattr(getattr(cfg, section), field_)).lower() == value.lower(), (name, row.name, item)
+            if name != "tiny":
+                assert cfg.loss.w_z_l1 == 0.0, (name, row.name)
+            if budget.obj_ids:
+                assert cfg.stream.obj_ids == budget.obj_ids
+    medium = sweep.BUDGETS["medium"]
+    assert medium.steps == 4000 and len(medium.obj_ids) == 4 and medium.seeds == (0, 1, 2)
