@@ -97,6 +97,12 @@ class StreamConfig:
             raise ValueError(f"workers must be >= 0, got {self.workers}")
 
 
+def derive_seed(seed: int, tag: int) -> int:
+    """A stream seed derived from a run's ``seed`` and a ``tag`` (a process index, a purpose):
+    independent streams that are still pure functions of the run's seed."""
+    return int(np.random.SeedSequence([seed, tag]).generate_state(1)[0] & 0x7FFFFFFF)
+
+
 def dense_targets(
     depth: np.ndarray, mask: np.ndarray, K_B: np.ndarray, R: np.ndarray, R_allo: np.ndarray, t: np.ndarray,
     diameter: np.ndarray, factor: int = 4,

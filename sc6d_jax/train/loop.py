@@ -201,9 +201,9 @@ def initialize_distributed(coordinator_address: str, num_processes: int, process
 
 
 def _process_seed(seed: int, index: int, count: int) -> int:
-    if count == 1:
-        return seed
-    return int(np.random.SeedSequence([seed, index]).generate_state(1)[0] & 0x7FFFFFFF)
+    from sc6d_jax.data import derive_seed
+
+    return seed if count == 1 else derive_seed(seed, index)
 
 
 def _replicate(tree: Any, sharding: NamedSharding) -> Any:
@@ -488,7 +488,8 @@ def _loop(run: _Run, params: Any, opt_state: Any, base_key: jax.Array, start: in
             n_win += 1
             if not finite:
                 raise NonFiniteLossError(done, host, last_ckpt)
-            if done % cfg.log_every == 0 or done == cfg.steps:
+            if done % cfg.log_every == 0 or done == cfg.steps or done == hold:
+                # a checkpoint step that is validated is always logged: its record carries both
                 now = time.perf_counter()
                 rec: dict[str, Any] = {"step": done}
                 for k in window[0]:
@@ -529,7 +530,7 @@ def _loop(run: _Run, params: Any, opt_state: Any, base_key: jax.Array, start: in
                 if validating:
                     # the step's record gets the validation fields (one line per logged step)
                     tv = time.perf_counter()
-                    vrec = held.pop() if held else {"step": done, "train_s": off_train + tv - t0 - val_s}
+                    vrec = held.pop()
                     vrec.update(validator(params))
                     val_s += time.perf_counter() - tv
                     vrec["val_s"] = time.perf_counter() - tv

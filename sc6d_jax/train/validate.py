@@ -35,7 +35,9 @@ VAL_SEED_TAG = 0x5A1D
 
 
 def _val_seed(seed: int) -> int:
-    return int(np.random.SeedSequence([seed, VAL_SEED_TAG]).generate_state(1)[0] & 0x7FFFFFFF)
+    from sc6d_jax.data import derive_seed
+
+    return derive_seed(seed, VAL_SEED_TAG)
 
 
 class Validator:
