@@ -144,3 +144,28 @@ def test_optional_heads_leave_the_other_parameters_unchanged():
     R = np.asarray(G.rot_z(0.3))[None].repeat(2, 0)
     e = model.encode_rotations(c, dataclasses.replace(mcfg, so3_pe_freqs=3), jnp.asarray(R), jnp.array([0, 1]))
     np.testing.assert_allclose(np.linalg.norm(np.asarray(e), axis=-1), 1.0, atol=1e-5)
+
+
+def test_teacher_gate_replaces_the_predicted_mask_where_on():
+    """apply's teacher gate: off = the predicted gate; on with the predicted gate's own values =
+    the same outputs; on with another mask = other outputs, for those samples only."""
+    mcfg = model.ModelConfig(n_objects=1, crop_size=32, backbone="tiny", width=8, decoder_width=8, feat_dim=8,
+                             pose_width=8, head_hidden=16, so3_hidden=16, n_z_bins=8, conv_impl="lax",
+                             gn_groups=4, mask_gate=True)
+    params = model.init(jax.random.PRNGKey(0), mcfg)
+    rng = np.random.default_rng(1)
+    rgb = jnp.asarray(rng.integers(0, 256, (2, 32, 32, 3)).astype(np.uint8))
+    pe = jnp.asarray(rng.normal(size=(2, 32, 32, 2)).astype(np.float32))
+    obj = jnp.zeros((2,), jnp.int32)
+    fwd = jax.jit(lambda p, t: model.apply(p, mcfg, rgb, pe, obj, t))
+    plain = jax.jit(lambda p: model.apply(p, mcfg, rgb, pe, obj))(params)
+    own = jax.nn.sigmoid(plain["mask_logit"])
+    off = fwd(params, (jnp.zeros_like(own), jnp.array([False, False])))
+    same = fwd(params, (own, jnp.array([True, True])))
+    box = jnp.zeros_like(own).at[:, 2:6, 3:7].set(1.0)  # a spatially varying (ground-truth-like) mask
+    other = fwd(params, (box, jnp.array([True, False])))
+    for k in ("rot_emb", "delta_xy", "z_logits"):
+        np.testing.assert_allclose(off[k], plain[k], atol=1e-6)
+        np.testing.assert_allclose(same[k], plain[k], atol=1e-5)
+        assert np.abs(other[k][0] - plain[k][0]).max() > 1e-3 * np.abs(plain[k][0]).max(), k
+        np.testing.assert_allclose(other[k][1], plain[k][1], atol=1e-6)

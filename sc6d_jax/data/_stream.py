@@ -337,6 +337,7 @@ class _Worker:
             obj_idx=np.array([self.obj_ids.index(p.obj_id) for p in poses], np.int32),
             obj_id=np.array([p.obj_id for p in poses], np.int32),
             center=centers.astype(np.float32), side=sides.astype(np.float32),
+            difficulty=np.full((B,), self.difficulty(b), np.float32),
         )
 
 
@@ -435,7 +436,8 @@ class CropStream:
 
     Keys: rgb uint8 (B,S,S,3), pe float32 (B,S,S,2), mask_visib uint8 (B,S,S), R_allo, R (B,3,3),
     t (B,3) mm, K and K_B (B,3,3), delta_xy (B,2), delta_z (B,), obj_idx / obj_id int32 (B,),
-    center (B,2) and side (B,) of the crop box in the image.
+    center (B,2) and side (B,) of the crop box in the image, difficulty (B,) the curriculum's
+    difficulty of the batch (1 = full); with dense=True also dense (B,S/4,S/4,4), dense_w (B,S/4,S/4).
     """
 
     def __init__(self, cfg: StreamConfig, start_batch: int = 0) -> None:

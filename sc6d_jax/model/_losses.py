@@ -66,6 +66,10 @@ class LossConfig:
     - per_sample_negatives: draw an independent random roll per sample (vmapped over the
       batch) instead of one set of deltas shared by the batch.
     - w_rot 1, w_xy 10, w_z 1, w_mask 1: loss weights.
+    - teacher_gate: with ``ModelConfig.mask_gate``, gate the features of a sample by its
+      ground-truth visible mask instead of the predicted one with probability 1 - d, where d is
+      the curriculum's difficulty of its batch (``batch['difficulty']``, 1 = full): while the
+      mask head is still poor, the pose heads see the object's features without the clutter.
     - w_dense: weight of the dense geometry loss (needs ``ModelConfig.dense_head`` and the
       stream's ``dense`` / ``dense_w`` targets): L1 of the normal and the relative depth over
       the visible blocks, weighted by their visible fraction (0 = off, paper).
@@ -94,6 +98,7 @@ class LossConfig:
     local_min_deg: float = 2.0
     local_max_deg: float = 30.0
     w_dense: float = 0.0
+    teacher_gate: bool = False
 
     def __post_init__(self) -> None:
         if self.z_mode not in Z_MODES:
@@ -311,7 +316,14 @@ def loss_fn(
         _check_dense(mcfg, batch)
     d_lo, d_hi = z_range
     obj_idx = jnp.asarray(batch["obj_idx"], jnp.int32)
-    out = apply(params, mcfg, batch["rgb"], batch.get("pe") if mcfg.use_pe else None, obj_idx)
+    target = downsample_mask(jnp.asarray(batch["mask_visib"]), 4, lcfg.mask_downsample)
+    teacher = None
+    if lcfg.teacher_gate and mcfg.mask_gate:
+        if "difficulty" not in batch:
+            raise ValueError("loss.teacher_gate needs batch['difficulty'] (the crop stream's curriculum)")
+        d = jnp.asarray(batch["difficulty"], jnp.float32)
+        teacher = (target, jax.random.uniform(jax.random.fold_in(key, 2), d.shape) >= d)
+    out = apply(params, mcfg, batch["rgb"], batch.get("pe") if mcfg.use_pe else None, obj_idx, teacher)
     R_gt = jnp.asarray(batch["R_allo"], jnp.float32)
     logits = candidate_logits(params, mcfg, lcfg, out, R_gt, obj_idx, key)
     loss_rot = info_nce(logits)
@@ -339,7 +351,6 @@ def loss_fn(
     if lcfg.w_z_l1 > 0:
         loss_z = loss_z + lcfg.w_z_l1 * jnp.mean(jnp.abs(jnp.log(jnp.maximum(code_pred, 1e-6) / code)))
 
-    target = downsample_mask(jnp.asarray(batch["mask_visib"]), 4, lcfg.mask_downsample)
     loss_mask = bce_with_logits(out["mask_logit"], target)
 
     loss = lcfg.w_rot * loss_rot + lcfg.w_xy * loss_xy + lcfg.w_z * loss_z + lcfg.w_mask * loss_mask

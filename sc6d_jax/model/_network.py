@@ -59,13 +59,17 @@ def _check_inputs(cfg: ModelConfig, rgb: jax.Array, pe: jax.Array | None, obj_id
 
 
 def apply(
-    params: dict, cfg: ModelConfig, rgb: jax.Array, pe: jax.Array | None, obj_idx: jax.Array
+    params: dict, cfg: ModelConfig, rgb: jax.Array, pe: jax.Array | None, obj_idx: jax.Array,
+    teacher_gate: tuple[jax.Array, jax.Array] | None = None,
 ) -> dict:
     """Forward pass.
 
     rgb: float32 (B,S,S,3) in [0,1] (uint8 is accepted and divided by 255); it is normalised
     inside with ImageNet mean/std. pe: (B,S,S,2) PE map (ignored, may be None, when
     cfg.use_pe is False). obj_idx: int (B,) object index in [0, n_objects).
+    teacher_gate: training only, with cfg.mask_gate: ``(mask (B,S/4,S/4) in [0, 1], on (B,)
+    bool)``: the samples where ``on`` is set gate their features with this (ground-truth) mask
+    instead of the predicted one.
 
     Returns {'rot_emb' (B,emb_dim) unit-norm image embedding, 'delta_xy' (B,2),
     'z_logits' (B,n_z_bins), 'mask_logit' (B,S/4,S/4)}, and 'dense' (B,S/4,S/4,4) with
@@ -82,7 +86,11 @@ def apply(
     if cfg.dense_head:
         extra["dense"] = dense(feat, params["dense_head"]["w"], params["dense_head"]["b"])
     if cfg.mask_gate:
-        feat = feat * jax.nn.sigmoid(mask_logit)[..., None]
+        gate = jax.nn.sigmoid(mask_logit)
+        if teacher_gate is not None:
+            mask, on = teacher_gate
+            gate = jnp.where(jnp.asarray(on)[:, None, None], jnp.asarray(mask, gate.dtype), gate)
+        feat = feat * gate[..., None]
     rot, dxy, zl = pose_decoder(params["pose_decoder"], cfg, feat, mask_logit)
     return {"rot_emb": _l2n(rot), "delta_xy": dxy, "z_logits": zl, "mask_logit": mask_logit, **extra}
 
