@@ -312,6 +312,8 @@ def loss_fn(
     With z_norm="focal" the batch must hold 'K' (B,3,3), the image intrinsics.
     """
     _check_batch(mcfg, batch)
+    if lcfg.z_norm != "none" and "K" not in batch:
+        raise ValueError("z_norm='focal' needs the image intrinsics K (batch['K'])")
     if lcfg.w_dense > 0:
         _check_dense(mcfg, batch)
     d_lo, d_hi = z_range
