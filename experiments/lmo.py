@@ -59,7 +59,8 @@ class Budget:
 
 
 BUDGETS: dict[str, Budget] = {
-    "tiny": Budget(preset="tiny", steps=12, obj_ids=(8, 10), library_size=20_000, checkpoint_every=12),
+    "tiny": Budget(preset="tiny", steps=12, obj_ids=(8, 10), library_size=20_000, checkpoint_every=12,
+                   overrides=("val_crops=0",)),
     # LM-O's test objects sit 3 to 11 diameters from the camera (the stream's default is 2.5-9)
     "full": Budget(preset="cpu", steps=None, obj_ids=None, library_size=None,
                    overrides=("stream.distance=2.5,12",)),
