@@ -88,6 +88,9 @@ def test_carried_state_resumes_bit_exact(runs, capsys):
         "config.json", "metrics.jsonl",
     ]
     assert [m["step"] for m in _metrics(state)] == [1, 2, 3]
+    # it is meant to be committed: no absolute path of this machine (the runs used absolute ones)
+    for p in state.rglob("*.json"):
+        assert str(root) not in p.read_text() and str(models) not in p.read_text(), p
     assert sorted(p.name for p in state.parent.iterdir()) == ["state"]  # no temporary leftovers
     # the carried folder is a run directory as it is: resume it with the CLI (config read back)
     assert main(["train", "--models", str(models), "--out", str(state), "--resume",

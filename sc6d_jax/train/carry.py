@@ -65,6 +65,11 @@ def _read_json(path: Path, what: str) -> Any:
         raise ValueError(f"{path} is not valid JSON ({exc})") from None
 
 
+def _portable(path: str | None) -> str | None:
+    """``path`` when it is relative, else None (an absolute path names one machine's folders)."""
+    return path if path and not os.path.isabs(path) else None
+
+
 def _write(path: Path, data: bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "wb") as f:
@@ -137,13 +142,18 @@ def carry(run_dir: str | os.PathLike, out: str | os.PathLike) -> Carried:
                          f"differing: {'; '.join(diff)}")
     _check_out(out, run_dir, config, step)
     metrics = "".join(line + "\n" for line in read_metrics_upto(run_dir / "metrics.jsonl", step))
+    # The state is meant to be committed and moved between machines: no absolute path of this
+    # machine goes with it (the models folder is informative; the next leg names its own).
+    models_dir = _portable(meta.get("models_dir"))
+    if models_dir != meta.get("models_dir"):
+        meta_bytes = (json.dumps({**meta, "models_dir": models_dir}, indent=2) + "\n").encode("utf-8")
     info = {
         "format": CARRY_FORMAT,
         "step": step,
         "checkpoint": ckpt.name,
         "state_sha256": meta["state_sha256"],
-        "source": str(run_dir.resolve()),
-        "models_dir": meta.get("models_dir"),  # informative, as in the checkpoint
+        "source": _portable(str(run_dir)) or run_dir.name,
+        "models_dir": models_dir,  # informative, as in the checkpoint (None when it was absolute)
     }
     with atomic_directory(out, overwrite=True) as tmp:
         os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it 0700; make it an ordinary folder
