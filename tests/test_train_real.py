@@ -242,3 +242,18 @@ def test_cli_obj_ids_keep_the_presets_stream_settings(tmp_path):
     assert cfg.stream.obj_ids == (1, 3) and cfg.stream.batch_size == 16 and cfg.model.n_objects == 2
     assert cfg.stream.curriculum_fraction == cpu.stream.curriculum_fraction > 0
     assert cfg.curriculum_steps == 1800 and cfg.stream.distance == (2.5, 12.0)
+
+
+def test_a_config_saved_before_a_field_existed_still_matches():
+    """Runs carried from leg to leg outlive code changes: a saved config that lacks a field
+    compares as that field's default (new options default to the old behaviour)."""
+    from sc6d_jax.train.config import config_differences
+
+    cfg = preset("long").to_dict()
+    old = json.loads(json.dumps(cfg))
+    del old["loss"]["teacher_gate"], old["model"]["so3_pe_freqs"]
+    assert config_differences(old, cfg) == [] and config_differences(cfg, old) == []
+    changed = json.loads(json.dumps(cfg))
+    changed["loss"]["teacher_gate"] = True
+    assert config_differences(old, changed) == ["loss.teacher_gate (False != True)"]
+    assert config_differences(old, {**cfg, "steps": 7}) == ["steps (150000 != 7)"]

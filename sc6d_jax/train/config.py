@@ -277,8 +277,20 @@ def _check_keys(cls: type, d: dict[str, Any], where: str) -> dict[str, Any]:
     return {k: _tuplify(v) for k, v in d.items()}
 
 
+def with_defaults(d: dict[str, Any]) -> dict[str, Any]:
+    """A config dict with the fields it lacks filled in with their defaults (a config saved
+    before a field existed trained as that field's default: new options default to the old
+    behaviour). Returned unchanged when it is not a valid config."""
+    try:
+        return TrainConfig.from_dict(d).to_dict()
+    except (ValueError, TypeError):
+        return d
+
+
 def config_differences(a: dict[str, Any], b: dict[str, Any], ignore: frozenset[str] = RUN_ONLY_FIELDS) -> list[str]:
-    """Dotted names of the fields where two config dicts differ (top-level ``ignore`` skipped)."""
+    """Dotted names of the fields where two config dicts differ (top-level ``ignore`` skipped).
+    A field one side lacks counts as its default (``with_defaults``)."""
+    a, b = with_defaults(a), with_defaults(b)
     out: list[str] = []
 
     def walk(x: Any, y: Any, prefix: str) -> None:
