@@ -369,7 +369,9 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # 52: the same), batch 16 over 4,000 steps (0.235 / 50 at 6.5 min; at equal minutes
         # the same); against lr 2e-3 (0.242 / 48): the ground-truth mask as the gate while the
         # curriculum ramps (loss.teacher_gate: 0.193 / 73, depth 8.1 vs 9.2 %), a curriculum
-        # over 60 % of the run (0.235 / 52: the same).
+        # over 60 % of the run (0.235 / 52: the same). At equal minutes (about 9, obj 1; base
+        # 0.332 / 30 at 3,600 steps): a 3x3 stem (the same), backbone="resnet10" (0.281 / 39),
+        # width 32 with decoder 64 (0.258 / 50); per step they learn no faster either.
         # 18,000 steps: about an hour on 2 cores with one renderer worker. The "long" preset is
         # the same recipe over 150,000 steps (about 8 hours), run in legs (sc6d carry).
         cfg = TrainConfig(
