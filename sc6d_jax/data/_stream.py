@@ -26,7 +26,7 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from sc6d_jax.data._augment import colour_augment, random_background
+from sc6d_jax.data._augment import camera_effects, colour_augment, random_background
 from sc6d_jax.data._scene import project_box, random_rotation, sample_pose
 
 #: Resample a crop whose visible mask is below either bound (authors' code).
@@ -66,6 +66,18 @@ class StreamConfig:
             occluders with probability ``occlusion * d``. Small networks trained from scratch
             learn nothing in the first thousands of steps on the full setting, and quickly on
             plain backgrounds; the ramp is a pure function of b, so determinism is kept.
+        materials: draw each rendered object's specular intensity (0-0.8) and shininess (0-1)
+            per crop (else MuJoCo's 0.3 and 0.3 for every object).
+        resample: a crop whose box is smaller in its image than S pixels is reduced to the box's
+            image size and enlarged back, as a real crop cut from a camera image is
+            (``camera_effects``); rendered directly at S x S it would be sharper than any real one.
+        sensor: camera effects at image resolution: motion blur, gamma, sensor noise, JPEG
+            (``camera_effects``), before the colour augmentation.
+        distractors: up to this many other objects placed behind the target (they never cover
+            it), in a crop with probability equal to the curriculum's difficulty: object clutter
+            in the background, as in real scenes, next to the procedural patterns.
+        These four default to off (the streams of earlier runs are unchanged); they are the
+        stream's realism options for real test images (LM-O).
     """
 
     models_dir: str
@@ -81,6 +93,10 @@ class StreamConfig:
     background: str = "textured"
     curriculum: int = 0
     dense: bool = False
+    materials: bool = False
+    resample: bool = False
+    sensor: bool = False
+    distractors: int = 0
 
     def __post_init__(self) -> None:
         if self.background not in ("textured", "plain"):
@@ -95,6 +111,8 @@ class StreamConfig:
             raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
         if self.workers < 0:
             raise ValueError(f"workers must be >= 0, got {self.workers}")
+        if not isinstance(self.distractors, int) or self.distractors < 0:
+            raise ValueError(f"distractors must be a non-negative integer, got {self.distractors!r}")
 
 
 def derive_seed(seed: int, tag: int) -> int:
@@ -266,6 +284,21 @@ class _Worker:
                         Primitive(str(rng.choice(["box", "sphere", "cylinder", "ellipsoid"])), size,
                                   rng.uniform(0, 1, 3), random_rotation(rng), c)
                     )
+        if cfg.distractors and rng.random() < difficulty:  # clutter behind the target
+            d_t = self.diameters[p.obj_id]
+            for _ in range(rng.integers(1, cfg.distractors + 1)):
+                oid = int(self.all_ids[rng.integers(len(self.all_ids))])
+                # centres farther apart along z than the two bounding spheres' radii: every
+                # point of the distractor lies behind every point of the target
+                depth = p.t[2] + 0.5 * (d_t + self.diameters[oid]) * rng.uniform(1.0, 2.5)
+                off = rng.uniform(-0.6, 0.6, 2) * side / p.K[0, 0] * depth
+                c = p.t * depth / p.t[2] + np.array([off[0], off[1], 0.0])
+                R_d = random_rotation(rng)
+                if sum(o[0] == oid for o in objects) < self.renderer.max_instances:
+                    objects.append((oid, R_d, c))
+        if cfg.materials:
+            for oid in dict.fromkeys(o[0] for o in objects):
+                self.renderer.set_material(oid, specular=rng.uniform(0.0, 0.8), shininess=rng.uniform(0.0, 1.0))
         lights = [
             Light(direction=rng.normal(size=3) + np.array([0, 0, 1.5]), diffuse=rng.uniform(0.2, 0.7),
                   specular=rng.uniform(0.0, 0.4))
@@ -279,7 +312,10 @@ class _Worker:
         n_vis = int(mask.sum())
         if n_vis < MIN_VISIBLE_PX or n_vis < MIN_VISIBLE_FRACTION * S * S:
             return None
-        return out.rgb, mask, out.depth
+        rgb = out.rgb
+        if cfg.resample or cfg.sensor:
+            rgb = camera_effects(rng, rgb, side, resample=cfg.resample, sensor=cfg.sensor)
+        return rgb, mask, out.depth
 
     def batch(self, b: int) -> dict[str, np.ndarray]:
         """Batch ``b``: sample j draws from default_rng([seed, b, j]) only. Labels (translation

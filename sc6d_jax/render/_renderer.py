@@ -310,6 +310,18 @@ class Renderer:
             model.vis.headlight.diffuse[:] = dif
             model.vis.headlight.specular[:] = 0.0 if dif == 0 else 0.1
 
+    def set_material(self, obj_id: int, specular: float = 0.3, shininess: float = 0.3) -> None:
+        """Set the surface of object ``obj_id`` (all its instances): specular intensity and
+        shininess, both in [0, 1] (MuJoCo's material; the defaults are the renderer's own)."""
+        if int(obj_id) not in self.obj_ids:
+            raise ValueError(f"unknown obj_id {obj_id} (renderer has {self.obj_ids})")
+        for name, v in (("specular", specular), ("shininess", shininess)):
+            if not 0.0 <= float(v) <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {v}")
+        mid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_MATERIAL, f"mat{int(obj_id)}")
+        self.model.mat_specular[mid] = float(specular)
+        self.model.mat_shininess[mid] = float(shininess)
+
     def _place(self, objects, primitives) -> list[int]:
         data = self.data
         data.mocap_pos[:] = _HIDDEN

@@ -61,6 +61,9 @@ class StreamSettings:
             full setting (``sc6d_jax.data.StreamConfig.curriculum``; 0 = full from the start).
         curriculum_fraction: the same as a fraction of the run's steps (the larger of the two
             applies), so that ``--steps N`` keeps the schedule's shape at any N.
+        materials, resample, sensor, distractors: the stream's realism options for real test
+            images (``sc6d_jax.data.StreamConfig``; off by default). The validation crops never
+            use them, so runs with and without them are scored on the same crops.
         distance: camera distance range in object diameters (``None`` = the stream's default,
             2.5 to 9); widen it when test objects sit farther away.
     """
@@ -72,8 +75,14 @@ class StreamSettings:
     curriculum: int = 0
     distance: tuple[float, float] | None = None
     curriculum_fraction: float = 0.0
+    materials: bool = False
+    resample: bool = False
+    sensor: bool = False
+    distractors: int = 0
 
     def __post_init__(self) -> None:
+        if not isinstance(self.distractors, int) or self.distractors < 0:
+            raise ValueError(f"stream.distractors must be a non-negative integer, got {self.distractors!r}")
         if not 0.0 <= self.curriculum_fraction <= 1.0:
             raise ValueError(f"stream.curriculum_fraction must be in [0, 1], got {self.curriculum_fraction!r}")
         if not isinstance(self.batch_size, int) or self.batch_size < 1:

@@ -315,6 +315,9 @@ def train(
         common["distance"] = cfg.stream.distance
     if getattr(cfg.loss, "w_dense", 0) > 0:
         common["dense"] = True
+    for name in ("materials", "resample", "sensor", "distractors"):  # realism options, when on
+        if getattr(cfg.stream, name):
+            common[name] = getattr(cfg.stream, name)
     scfg = data_fns.stream_config(batch_size=local_bs, seed=_process_seed(cfg.seed, pidx, pcount), **common)
     stream = data_fns.stream(scfg, start)
     try:

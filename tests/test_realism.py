@@ -1,0 +1,124 @@
+"""The crop stream's realism options (materials, resampling, sensor effects, background clutter)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+
+from sc6d_jax.data import CropStream, StreamConfig
+from sc6d_jax.data._augment import camera_effects
+from sc6d_jax.render import Light, Renderer
+from sc6d_jax.train import DataFns, preset, train
+from sc6d_jax.train.cli import apply_overrides
+from sc6d_jax.train.loop import _default_data_fns
+
+
+def _checkerboard(S: int, cell: int = 1) -> np.ndarray:
+    v, u = np.mgrid[0:S, 0:S]
+    board = (((u // cell) + (v // cell)) % 2 * 255).astype(np.uint8)
+    return np.repeat(board[..., None], 3, axis=-1)
+
+
+def _detail(img: np.ndarray) -> float:
+    return float(cv2.Laplacian(img[..., 0].astype(np.float32), cv2.CV_32F).var())
+
+
+def test_resampling_removes_the_detail_a_small_box_cannot_have():
+    img = _checkerboard(64)
+    rng = np.random.default_rng(0)
+    small = camera_effects(rng, img, side=16.0, sensor=False)
+    assert small.shape == img.shape and small.dtype == np.uint8
+    assert _detail(small) < 0.05 * _detail(img)  # a 1-px checkerboard cannot survive 16 px
+    # a box as large as the crop or larger: nothing to do without the sensor effects
+    np.testing.assert_array_equal(camera_effects(rng, img, side=64.0, sensor=False), img)
+    np.testing.assert_array_equal(camera_effects(rng, img, side=300.0, sensor=False), img)
+    np.testing.assert_array_equal(camera_effects(rng, img, side=16.0, resample=False, sensor=False), img)
+
+
+def test_sensor_effects_are_seeded_and_change_the_crop():
+    img = (_checkerboard(64, cell=8) // 2 + np.arange(64, dtype=np.uint8)[None, :, None]).astype(np.uint8)
+    a = [camera_effects(np.random.default_rng(s), img, side=200.0, resample=False) for s in range(12)]
+    b = [camera_effects(np.random.default_rng(s), img, side=200.0, resample=False) for s in range(12)]
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x, y)
+    changed = [not np.array_equal(x, img) for x in a]
+    assert sum(changed) >= 9  # four effects at p 0.3-0.5: at least one in nearly every crop
+    assert all(x.shape == img.shape and x.dtype == np.uint8 for x in a)
+
+
+def test_set_material_changes_the_highlights_and_checks_its_input():
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=50.0)
+    mesh.visual.face_colors = [150, 150, 150, 255]
+    K = np.array([[200.0, 0, 47.5], [0, 200.0, 47.5], [0, 0, 1]])
+    r = Renderer({1: mesh}, 96, 96, n_lights=1)
+    try:
+        r.set_lights([Light(direction=(0.0, 0.0, 1.0), diffuse=0.5, specular=1.0)], headlight=(0.2, 0.0))
+        pose = [(1, np.eye(3), np.array([0.0, 0.0, 400.0]))]
+        r.set_material(1, specular=0.0, shininess=0.5)
+        dull = r.render(pose, K).rgb.astype(np.int32)
+        r.set_material(1, specular=1.0, shininess=0.5)
+        shiny = r.render(pose, K).rgb.astype(np.int32)
+        assert shiny.max() > dull.max() + 20  # a highlight appears
+        np.testing.assert_array_equal(shiny[0, 0], dull[0, 0])  # the background is untouched
+        with pytest.raises(ValueError, match="unknown obj_id"):
+            r.set_material(2)
+        with pytest.raises(ValueError, match="specular"):
+            r.set_material(1, specular=1.5)
+    finally:
+        r.close()
+
+
+def test_distractors_stay_behind_the_target(models):
+    """Clutter behind the target never covers it: with plain backgrounds and no occluders, the
+    target's visible masks are those of the stream without distractors, while other pixels
+    than the plain background appear around it."""
+    kw = dict(crop_size=48, batch_size=12, workers=0, obj_ids=(1, 5, 8), seed=5, augment=False,
+              background="plain", occlusion=0.0)
+    with CropStream(StreamConfig(str(models), **kw)) as s:
+        base = s.batch(0)
+    with CropStream(StreamConfig(str(models), distractors=2, materials=True, **kw)) as s:
+        clutter = s.batch(0)
+    np.testing.assert_array_equal(clutter["mask_visib"], base["mask_visib"])
+    for k in ("R", "t", "K", "delta_z", "obj_id"):
+        np.testing.assert_array_equal(clutter[k], base[k])
+
+    def colours_outside(batch):
+        out = []
+        for rgb, m in zip(batch["rgb"], batch["mask_visib"]):
+            px = rgb[m == 0].reshape(-1, 3)
+            out.append(len(np.unique(px, axis=0)))
+        return np.array(out)
+
+    assert np.all(colours_outside(base) <= 2)  # plain: one colour (anti-aliased edges aside)
+    assert np.sum(colours_outside(clutter) > 10) >= 6  # clutter in most crops
+    with pytest.raises(ValueError, match="distractors"):
+        StreamConfig(str(models), distractors=-1)
+
+
+def test_realism_options_reach_the_stream_from_the_config(models, tmp_path):
+    """``--set stream.sensor=true`` etc. are passed to the crop stream; when off, nothing is."""
+    seen: list[dict] = []
+    default = _default_data_fns()
+
+    class Stop(Exception):
+        pass
+
+    def spy(**kw):
+        seen.append(kw)
+        raise Stop
+
+    fns = DataFns(spy, default.stream, default.z_range)
+    cfg = apply_overrides(preset("tiny"), ["stream.sensor=true", "stream.distractors=2", "stream.materials=true",
+                                           "stream.resample=true", "steps=2", "val_crops=0"])
+    with pytest.raises(Stop):
+        train(cfg, models, tmp_path / "a", workers=0, progress=False, verbose=False, data_fns=fns)
+    assert {k: seen[-1].get(k) for k in ("sensor", "distractors", "materials", "resample")} == {
+        "sensor": True, "distractors": 2, "materials": True, "resample": True}
+    with pytest.raises(Stop):
+        train(preset("tiny", steps=2, val_crops=0), models, tmp_path / "b", workers=0, progress=False,
+              verbose=False, data_fns=fns)
+    assert not {"sensor", "distractors", "materials", "resample"} & set(seen[-1])
+    with pytest.raises(ValueError, match="distractors"):
+        apply_overrides(preset("tiny"), ["stream.distractors=-1"])
