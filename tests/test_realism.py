@@ -122,3 +122,18 @@ def test_realism_options_reach_the_stream_from_the_config(models, tmp_path):
     assert not {"sensor", "distractors", "materials", "resample"} & set(seen[-1])
     with pytest.raises(ValueError, match="distractors"):
         apply_overrides(preset("tiny"), ["stream.distractors=-1"])
+
+
+def test_gallery_script_draws_every_row_and_refuses_a_missing_folder(models, tmp_path, capsys):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "experiments" / "realism_gallery.py"
+    spec = importlib.util.spec_from_file_location("realism_gallery", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = tmp_path / "g.png"
+    assert mod.main(["--models", str(models), "--out", str(out), "--n", "2", "--size", "32"]) == 0
+    assert out.stat().st_size > 1000
+    assert mod.main(["--models", str(tmp_path / "nope"), "--out", str(out)]) == 2
+    assert "models folder not found" in capsys.readouterr().err
