@@ -12,7 +12,12 @@ A/B. Runs are sequential (two cores run one training at a time) and resumable: a
 skipped, an interrupted one resumed. Writes ``OUT/curves.csv`` (one row per run and checkpoint)
 and ``OUT/curves.png``; ``--test-images N`` also renders N test images of the objects (clutter,
 occlusion; the ``sc6d render`` set) and scores each run's final model on them with the BOP19 AR
-and the pose-error breakdown (``OUT/test.csv``).
+and the pose-error breakdown (``OUT/test.csv``). ``--test-dataset DIR`` scores each final model on
+an existing BOP test set instead (e.g. the real LM-O images, with ``--models DIR/models``; ground-
+truth boxes, only the targets of the trained objects): one row per run and object in
+``OUT/test.csv``, and a pooled row (object ``all``) with the AR over those targets. The test set
+only scores the runs: choose between configurations on the validation curves or on principles
+when the test set is the benchmark.
 """
 
 from __future__ import annotations
@@ -103,6 +108,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--config", action="append", default=[], help="NAME:KEY=VALUE,... (repeatable)")
     p.add_argument("--test-images", type=int, default=0, help="also score each final model on N rendered test images")
+    p.add_argument("--test-dataset", default=None,
+                   help="score each final model on this BOP test set (GT boxes; trained objects only)")
     args = p.parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "egl")
     try:
@@ -112,6 +119,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if len({n for n, _ in configs}) != len(configs):
         print("learning_curve: error: config names must be distinct", file=sys.stderr)
+        return 2
+    if args.test_dataset and not (Path(args.test_dataset) / "test_targets_bop19.json").is_file():
+        print(f"learning_curve: error: --test-dataset {args.test_dataset}: not a BOP test set "
+              "(no test_targets_bop19.json)", file=sys.stderr)
         return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -140,7 +151,9 @@ def main(argv: list[str] | None = None) -> int:
         all_rows += curve_rows(name, run)
         _write_csv(out / "curves.csv", all_rows, COLUMNS)
         plot(all_rows, out / "curves.png")
-    if args.test_images:
+    if args.test_dataset:
+        _test_dataset(args, out, [n for n, _ in configs])
+    elif args.test_images:
         _test(args, out, models, [n for n, _ in configs])
     for name, _ in configs:
         last = [r for r in all_rows if r["config"] == name][-1]
@@ -188,6 +201,57 @@ def _test(args, out: Path, models: Path, names: list[str]) -> None:
                      "depth_rel_median": b.get("depth_rel_median"), "centre_median_px": b.get("centre_median_px")})
         print(f"{name:>16}: test AR {rows[-1]['ar']:.3f}, rotation {b.get('rot_median_deg')}, depth {b.get('depth_rel_median')}")
     _write_csv(out / "test.csv", rows, ("config", "ar", "rot_median_deg", "depth_rel_median", "centre_median_px"))
+
+
+
+TEST_DATASET_COLUMNS = ("config", "obj_id", "targets", "ar", "ar_mssd", "ar_mspd", "ar_vsd", "rot_median_deg",
+                        "depth_rel_median", "centre_median_px", "rot_under_10")
+
+
+def dataset_rows(name: str, scores: dict, obj_ids: list[int]) -> list[dict]:
+    """Rows of one run's scores on a test set: one per trained object, then a pooled ``all`` row
+    (per-object recalls weighted by their targets: the recall the toolkit pools over targets)."""
+    per, bd = scores.get("per_object", {}), scores.get("breakdown", {}).get("per_object", {})
+    rows = []
+    for o in obj_ids:
+        d, b = per.get(str(o)), bd.get(str(o), {})
+        if d is None or not d.get("targets"):
+            continue
+        rows.append({"config": name, "obj_id": o, "targets": int(d["targets"]), "ar": d["ar"], "ar_mssd": d["ar_mssd"],
+                     "ar_mspd": d["ar_mspd"], "ar_vsd": d.get("ar_vsd"),
+                     **{k: b.get(k) for k in ("rot_median_deg", "depth_rel_median", "centre_median_px", "rot_under_10")}})
+    n = sum(r["targets"] for r in rows)
+    if n:
+        pooled = {k: sum(r[k] * r["targets"] for r in rows) / n for k in ("ar", "ar_mssd", "ar_mspd")}
+        if all(r["ar_vsd"] is not None for r in rows):
+            pooled["ar_vsd"] = sum(r["ar_vsd"] * r["targets"] for r in rows) / n
+        rows.append({"config": name, "obj_id": "all", "targets": n, **pooled})
+    return rows
+
+
+def _test_dataset(args, out: Path, names: list[str]) -> None:
+    """Score every run's final model on an existing BOP test set (GT boxes, trained objects)."""
+    from sc6d_jax.cli import main as sc6d
+
+    ds = Path(args.test_dataset)
+    obj_ids = [int(x) for x in args.obj_ids.split(",")]
+    rows = []
+    for name in names:
+        res = out / name / "testset_results.csv"
+        scores = out / name / "testset_scores.json"
+        if not scores.is_file():
+            for cmd in (["predict", "--run", str(out / name), "--dataset", str(ds), "--out", str(res)],
+                        ["eval", "--dataset", str(ds), "--results", str(res), "--out", str(scores)]):
+                rc = sc6d(cmd)
+                if rc != 0:
+                    raise SystemExit(rc)
+        got = dataset_rows(name, json.loads(scores.read_text()), obj_ids)
+        rows += got
+        for r in got:
+            rot = r.get("rot_median_deg")
+            print(f"{name:>16}: object {r['obj_id']}: {r['targets']} targets, AR {r['ar']:.3f}"
+                  + ("" if rot is None else f", rotation {rot:.1f} deg, depth {100 * r['depth_rel_median']:.1f} %"))
+    _write_csv(out / "test.csv", rows, TEST_DATASET_COLUMNS)
 
 
 if __name__ == "__main__":

@@ -136,3 +136,54 @@ def test_learning_curve_harness_writes_csv_and_plot(tmp_path, models):
     assert r2.returncode == 0 and "already complete" in r2.stdout
     bad = subprocess.run(cmd[:-4] + ["--config", "nocolon"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "NAME:KEY=VALUE" in bad.stderr
+
+
+def _harness():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("learning_curve", REPO / "experiments" / "learning_curve.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_learning_curve_test_dataset_rows_pool_the_trained_objects(tmp_path, capsys):
+    lc = _harness()
+    scores = {
+        "per_object": {
+            "1": {"targets": 30, "ar": 0.4, "ar_mssd": 0.3, "ar_mspd": 0.5, "ar_vsd": None},
+            "5": {"targets": 10, "ar": 0.8, "ar_mssd": 0.7, "ar_mspd": 0.9, "ar_vsd": None},
+            "6": {"targets": 50, "ar": 0.0, "ar_mssd": 0.0, "ar_mspd": 0.0, "ar_vsd": None},  # not trained
+        },
+        "breakdown": {"per_object": {"1": {"rot_median_deg": 12.0, "depth_rel_median": 0.03,
+                                           "centre_median_px": 2.0, "rot_under_10": 0.4}}},
+    }
+    rows = lc.dataset_rows("a", scores, [1, 5])
+    assert [r["obj_id"] for r in rows] == [1, 5, "all"]
+    assert rows[0]["rot_median_deg"] == 12.0 and rows[1]["rot_median_deg"] is None
+    assert rows[2]["targets"] == 40 and "ar_vsd" not in rows[2]
+    assert rows[2]["ar_mssd"] == pytest.approx((30 * 0.3 + 10 * 0.7) / 40)
+    assert rows[2]["ar"] == pytest.approx((30 * 0.4 + 10 * 0.8) / 40)
+    assert lc.dataset_rows("a", scores, [9]) == []
+    # a folder that is not a BOP test set: one error line, status 2, nothing trained
+    assert lc.main(["--out", str(tmp_path / "o"), "--test-dataset", str(tmp_path)]) == 2
+    assert "not a BOP test set" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow
+def test_learning_curve_scores_runs_on_the_real_lmo_images(tmp_path, shared_data):
+    """End to end on the real LM-O test images: a tiny run of the driller, scored per object."""
+    lmo = shared_data / "lmo"
+    if not (lmo / "test_targets_bop19.json").is_file():
+        pytest.skip(f"no LM-O test set in {lmo}")
+    out = tmp_path / "lc"
+    cmd = [sys.executable, str(REPO / "experiments" / "learning_curve.py"), "--out", str(out), "--models",
+           str(lmo / "models"), "--preset", "tiny", "--obj-ids", "8", "--steps", "10", "--checkpoint-every", "10",
+           "--workers", "0", "--config", "a:val_crops=16", "--test-dataset", str(lmo)]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=1800)
+    assert r.returncode == 0, r.stderr[-3000:]
+    rows = list(csv.DictReader(open(out / "test.csv")))
+    assert [x["obj_id"] for x in rows] == ["8", "all"]
+    assert int(rows[0]["targets"]) > 20 and 0.0 <= float(rows[1]["ar"]) <= 1.0
+    assert float(rows[0]["rot_median_deg"]) > 0
