@@ -8,7 +8,8 @@ Rows: the stream as the presets use it, then with each realism option alone (``m
 so column j shows the same object at the same pose in every row; the options draw random numbers
 of their own, so backgrounds, lights and the in-plane turns differ. With ``--dataset``, a last
 row of real test crops cut at their ground-truth visible boxes the way the estimator cuts them
-(pad 1.5, linear warp), for looking at only: nothing here chooses a setting from real images.
+(pad 1.5, linear warp) and a row of the same crops with the object rendered over them at its
+ground-truth pose. For looking at only: nothing here chooses a setting from real images.
 """
 
 from __future__ import annotations
@@ -45,10 +46,13 @@ def stream_rows(models: Path, n: int, size: int, seed: int) -> list[tuple[str, n
     return out
 
 
-def real_row(dataset: Path, n: int, size: int, seed: int) -> np.ndarray:
-    """``n`` real test crops at ground-truth visible boxes (distinct images, seeded choice)."""
+def real_rows(dataset: Path, n: int, size: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` real test crops at ground-truth visible boxes (seeded choice) and the same crops
+    with the object rendered over them at its ground-truth pose (the renderer's default lights):
+    where the two agree, the render of the object itself is faithful and the gap is elsewhere."""
     from sc6d_jax import geometry as G
-    from sc6d_jax.bop import BopDataset
+    from sc6d_jax.bop import BopDataset, model_path
+    from sc6d_jax.render import Renderer, load_mesh
 
     ds = BopDataset(dataset)
     items = []
@@ -60,14 +64,26 @@ def real_row(dataset: Path, n: int, size: int, seed: int) -> np.ndarray:
                     items.append((sid, im_id, k))
     rng = np.random.default_rng(seed)
     pick = [items[i] for i in rng.choice(len(items), size=min(n, len(items)), replace=False)]
-    crops = []
-    for sid, im_id, k in pick:
-        img = ds.load_rgb(sid, im_id)
-        box = np.asarray(ds.scene_gt_info(sid)[im_id][k].bbox_visib, np.float64)
-        c, s = G.crop_box(box, 1.5)
-        T = np.asarray(G.crop_transform(np.asarray(c), np.asarray(s), size))
-        crops.append(G.warp_crop(img, T, size))
-    return np.stack(crops)
+    ids = sorted({ds.scene_gt(sid)[im_id][k].obj_id for sid, im_id, k in pick})
+    renderer = Renderer({i: load_mesh(model_path(dataset / "models", i)) for i in ids}, size, size, n_lights=1)
+    crops, overlays = [], []
+    try:
+        for sid, im_id, k in pick:
+            img = ds.load_rgb(sid, im_id)
+            gt = ds.scene_gt(sid)[im_id][k]
+            box = np.asarray(ds.scene_gt_info(sid)[im_id][k].bbox_visib, np.float64)
+            c, s = G.crop_box(box, 1.5)
+            T = np.asarray(G.crop_transform(np.asarray(c), np.asarray(s), size))
+            crop = G.warp_crop(img, T, size)
+            out = renderer.render([(gt.obj_id, gt.R, gt.t)], T @ ds.scene_camera(sid)[im_id].K, depth=False)
+            over = crop.copy()
+            m = out.mask_visib[0] > 0
+            over[m] = out.rgb[m]
+            crops.append(crop)
+            overlays.append(over)
+    finally:
+        renderer.close()
+    return np.stack(crops), np.stack(overlays)
 
 
 def figure(rows: list[tuple[str, np.ndarray]], path: Path) -> None:
@@ -114,7 +130,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     rows = stream_rows(a.models, a.n, a.size, a.seed)
     if a.dataset is not None:
-        rows.append(("real test crops", real_row(a.dataset, a.n, a.size, a.seed)))
+        real, overlay = real_rows(a.dataset, a.n, a.size, a.seed)
+        rows += [("real test crops", real), ("render at GT pose", overlay)]
     a.out.parent.mkdir(parents=True, exist_ok=True)
     figure(rows, a.out)
     print(f"realism_gallery: wrote {a.out}")
