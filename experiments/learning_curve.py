@@ -172,6 +172,21 @@ def _write_csv(path: Path, rows: list[dict], columns) -> None:
     tmp.replace(path)
 
 
+def _scores(run: Path, ds: Path, tag: str) -> dict:
+    """The scores of a run's final model on the test set ``ds`` (``sc6d predict`` + ``sc6d eval``
+    into ``run/{tag}_results.csv`` and ``run/{tag}_scores.json``; kept, so a rerun skips them)."""
+    from sc6d_jax.cli import main as sc6d
+
+    res, scores = run / f"{tag}_results.csv", run / f"{tag}_scores.json"
+    if not scores.is_file():
+        for cmd in (["predict", "--run", str(run), "--dataset", str(ds), "--out", str(res)],
+                    ["eval", "--dataset", str(ds), "--results", str(res), "--out", str(scores)]):
+            rc = sc6d(cmd)
+            if rc != 0:
+                raise SystemExit(rc)
+    return json.loads(scores.read_text())
+
+
 def _test(args, out: Path, models: Path, names: list[str]) -> None:
     """Render a test set of the objects once and score every run's final model on it."""
     from sc6d_jax.cli import main as sc6d
@@ -187,15 +202,7 @@ def _test(args, out: Path, models: Path, names: list[str]) -> None:
             raise SystemExit(rc)
     rows = []
     for name in names:
-        res = out / name / "test_results.csv"
-        scores = out / name / "test_scores.json"
-        if not scores.is_file():
-            for cmd in (["predict", "--run", str(out / name), "--dataset", str(ds), "--out", str(res)],
-                        ["eval", "--dataset", str(ds), "--results", str(res), "--out", str(scores)]):
-                rc = sc6d(cmd)
-                if rc != 0:
-                    raise SystemExit(rc)
-        sc = json.loads(scores.read_text())
+        sc = _scores(out / name, ds, "test")
         b = sc.get("breakdown", {}).get("overall", {})
         rows.append({"config": name, "ar": sc["bop19_average_recall"], "rot_median_deg": b.get("rot_median_deg"),
                      "depth_rel_median": b.get("depth_rel_median"), "centre_median_px": b.get("centre_median_px")})
@@ -231,21 +238,11 @@ def dataset_rows(name: str, scores: dict, obj_ids: list[int]) -> list[dict]:
 
 def _test_dataset(args, out: Path, names: list[str]) -> None:
     """Score every run's final model on an existing BOP test set (GT boxes, trained objects)."""
-    from sc6d_jax.cli import main as sc6d
-
     ds = Path(args.test_dataset)
     obj_ids = [int(x) for x in args.obj_ids.split(",")]
     rows = []
     for name in names:
-        res = out / name / "testset_results.csv"
-        scores = out / name / "testset_scores.json"
-        if not scores.is_file():
-            for cmd in (["predict", "--run", str(out / name), "--dataset", str(ds), "--out", str(res)],
-                        ["eval", "--dataset", str(ds), "--results", str(res), "--out", str(scores)]):
-                rc = sc6d(cmd)
-                if rc != 0:
-                    raise SystemExit(rc)
-        got = dataset_rows(name, json.loads(scores.read_text()), obj_ids)
+        got = dataset_rows(name, _scores(out / name, ds, "testset"), obj_ids)
         rows += got
         for r in got:
             rot = r.get("rot_median_deg")
