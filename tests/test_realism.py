@@ -137,3 +137,55 @@ def test_gallery_script_draws_every_row_and_refuses_a_missing_folder(models, tmp
     assert out.stat().st_size > 1000
     assert mod.main(["--models", str(tmp_path / "nope"), "--out", str(out)]) == 2
     assert "models folder not found" in capsys.readouterr().err
+
+
+def test_simplify_mesh_keeps_shape_colours_and_orientation():
+    from sc6d_jax.render import simplify_mesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=40.0)  # 20,480 faces
+    top = mesh.triangles_center[:, 2] > 0
+    colours = np.where(top[:, None], [[200, 30, 30, 255]], [[30, 30, 200, 255]]).astype(np.uint8)
+    mesh.visual.face_colors = colours
+    small = simplify_mesh(mesh, 2000)
+    assert 500 < len(small.faces) <= 2000
+    # every vertex stays near the sphere (within a grid cell: extent 80 mm, k >= 10 cells)
+    r = np.linalg.norm(small.vertices, axis=1)
+    assert np.all(np.abs(r - 40.0) < 80.0 / 10 * np.sqrt(3))
+    # faces still point outwards, and keep their colours
+    outward = np.einsum("ij,ij->i", small.face_normals, small.triangles_center) > 0
+    assert outward.mean() > 0.98
+    fc = np.asarray(small.visual.face_colors)
+    z = small.triangles_center[:, 2]
+    assert np.all(fc[z > 8.0, 0] == 200) and np.all(fc[z < -8.0, 2] == 200)
+    # silhouettes at crop size agree with the full mesh
+    K = np.array([[140.0, 0, 31.5], [0, 140.0, 31.5], [0, 0, 1]])
+    masks = []
+    for m in (mesh, small):
+        rr = Renderer({1: m}, 64, 64, n_lights=0)
+        try:
+            masks.append(rr.render([(1, np.eye(3), np.array([0.0, 0.0, 200.0]))], K, depth=False).mask_visib[0] > 0)
+        finally:
+            rr.close()
+    iou = (masks[0] & masks[1]).sum() / (masks[0] | masks[1]).sum()
+    assert iou > 0.97
+    assert simplify_mesh(mesh, 30_000) is mesh  # within the limit: unchanged
+    with pytest.raises(ValueError, match="max_faces"):
+        simplify_mesh(mesh, 2)
+
+
+def test_stream_renders_simplified_meshes_with_the_same_labels(models):
+    from sc6d_jax.render import load_mesh
+
+    kw = dict(crop_size=32, batch_size=4, workers=0, obj_ids=(1, 8), seed=2, augment=False)
+    with CropStream(StreamConfig(str(models), **kw)) as s:
+        full = s.batch(0)
+    faces = len(load_mesh(models / "obj_000008.ply").faces)
+    limit = max(4, faces // 4)
+    with CropStream(StreamConfig(str(models), max_faces=limit, **kw)) as s:
+        assert int(s._local.renderer.model.mesh_facenum.max()) <= limit
+        simple = s.batch(0)
+    for k in ("R", "t", "K_B", "delta_z", "obj_id"):
+        np.testing.assert_array_equal(simple[k], full[k])
+    assert not np.array_equal(simple["rgb"], full["rgb"])
+    with pytest.raises(ValueError, match="max_faces"):
+        StreamConfig(str(models), max_faces=2)

@@ -64,6 +64,8 @@ class StreamSettings:
         materials, resample, sensor, distractors: the stream's realism options for real test
             images (``sc6d_jax.data.StreamConfig``; off by default). The validation crops never
             use them, so runs with and without them are scored on the same crops.
+        max_faces: render meshes simplified to about this many faces (0 = the full meshes;
+            ``sc6d_jax.data.StreamConfig``); the validation crops use the full meshes.
         distance: camera distance range in object diameters (``None`` = the stream's default,
             2.5 to 9); widen it when test objects sit farther away.
     """
@@ -79,8 +81,11 @@ class StreamSettings:
     resample: bool = False
     sensor: bool = False
     distractors: int = 0
+    max_faces: int = 0
 
     def __post_init__(self) -> None:
+        if not isinstance(self.max_faces, int) or self.max_faces < 0 or 0 < self.max_faces < 4:
+            raise ValueError(f"stream.max_faces must be 0 (full meshes) or an integer >= 4, got {self.max_faces!r}")
         if not isinstance(self.distractors, int) or self.distractors < 0:
             raise ValueError(f"stream.distractors must be a non-negative integer, got {self.distractors!r}")
         if not 0.0 <= self.curriculum_fraction <= 1.0:

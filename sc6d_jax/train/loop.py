@@ -315,7 +315,7 @@ def train(
         common["distance"] = cfg.stream.distance
     if getattr(cfg.loss, "w_dense", 0) > 0:
         common["dense"] = True
-    for name in ("materials", "resample", "sensor", "distractors"):  # realism options, when on
+    for name in ("materials", "resample", "sensor", "distractors", "max_faces"):  # stream options, when on
         if getattr(cfg.stream, name):
             common[name] = getattr(cfg.stream, name)
     scfg = data_fns.stream_config(batch_size=local_bs, seed=_process_seed(cfg.seed, pidx, pcount), **common)
