@@ -168,3 +168,37 @@ def test_carry_refuses_bad_input_with_one_error_line(runs, tmp_path, capsys):
     refused(bad, tmp_path / "s2", "corrupt")
     assert not (tmp_path / "s2").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad", "file", "fresh", "other"]
+
+
+def test_anneal_probe_cools_a_checkpoint_down_and_validates(runs, tmp_path, capsys):
+    """experiments/anneal_probe.py: from run A's step-3 checkpoint, a 4-step cool-down whose
+    learning rate starts at the run's value there and ends at lr_end, validated at the end."""
+    import importlib.util
+
+    from sc6d_jax.checkpoint import load_checkpoint
+    from sc6d_jax.train.loop import make_optimizer
+
+    root, models = runs
+    spec = importlib.util.spec_from_file_location("anneal_probe", Path(__file__).resolve().parents[1] / "experiments" / "anneal_probe.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = tmp_path / "probe"
+    assert mod.main(["--run", str(root / "a"), "--models", str(models), "--out", str(out), "--step", "3",
+                     "--steps", "10", "--workers", "0", "--val-crops", "16"]) == 0
+    text = capsys.readouterr().out
+    assert "after a 10-step cool-down: AR " in text
+    cfg = json.loads((out / "config.json").read_text())
+    _, run_cfg = load_checkpoint(root / "a", 3)
+    assert cfg["steps"] == 10 and cfg["stream"]["curriculum_fraction"] == 0 and cfg["val_crops"] == 16
+    assert cfg["optim"]["lr"] == pytest.approx(float(make_optimizer(run_cfg)[1](3)))
+    recs = _metrics(out)
+    assert recs[-1]["step"] == 10 and "val_ar" in recs[-1]
+    # the probe starts from the checkpoint's parameters, not from fresh ones
+    step, params, pcfg = mod.setup(root / "a", 3, 10)
+    assert step == 3 and pcfg.val_crops == run_cfg.val_crops
+    import jax
+
+    for x, y in zip(jax.tree.leaves(params), jax.tree.leaves(load_checkpoint(root / "a", 3)[0])):
+        np.testing.assert_array_equal(x, y)
+    assert mod.main(["--run", str(tmp_path), "--models", str(models), "--out", str(out)]) == 2
+    assert "not a training run" in capsys.readouterr().err
