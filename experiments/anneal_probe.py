@@ -27,9 +27,6 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-KEYS = ("val_ar", "val_rot_median_deg", "val_depth_rel_median", "val_rot_under_10")
-
-
 def _fmt(rec: dict | None) -> str:
     if not rec:
         return "no validation record"

@@ -210,7 +210,6 @@ def _test(args, out: Path, models: Path, names: list[str]) -> None:
     _write_csv(out / "test.csv", rows, ("config", "ar", "rot_median_deg", "depth_rel_median", "centre_median_px"))
 
 
-
 TEST_DATASET_COLUMNS = ("config", "obj_id", "targets", "ar", "ar_mssd", "ar_mspd", "ar_vsd", "rot_median_deg",
                         "depth_rel_median", "centre_median_px", "rot_under_10")
 

@@ -55,27 +55,25 @@ def real_rows(dataset: Path, n: int, size: int, seed: int) -> tuple[np.ndarray, 
     from sc6d_jax.render import Renderer, load_mesh
 
     ds = BopDataset(dataset)
-    items = []
+    items = []  # (scene, image, ground truth, its info, camera K), each scene's files read once
     for sid in ds.scene_ids():
-        info = ds.scene_gt_info(sid)
+        info, cams = ds.scene_gt_info(sid), ds.scene_camera(sid)
         for im_id, gts in ds.scene_gt(sid).items():
-            for k, _gt in enumerate(gts):
-                if info[im_id][k].visib_fract > 0.3:
-                    items.append((sid, im_id, k))
+            for gt, gi in zip(gts, info[im_id]):
+                if gi.visib_fract > 0.3:
+                    items.append((sid, im_id, gt, gi, cams[im_id].K))
     rng = np.random.default_rng(seed)
     pick = [items[i] for i in rng.choice(len(items), size=min(n, len(items)), replace=False)]
-    ids = sorted({ds.scene_gt(sid)[im_id][k].obj_id for sid, im_id, k in pick})
+    ids = sorted({gt.obj_id for _, _, gt, _, _ in pick})
     renderer = Renderer({i: load_mesh(model_path(dataset / "models", i)) for i in ids}, size, size, n_lights=1)
     crops, overlays = [], []
     try:
-        for sid, im_id, k in pick:
+        for sid, im_id, gt, gi, K in pick:
             img = ds.load_rgb(sid, im_id)
-            gt = ds.scene_gt(sid)[im_id][k]
-            box = np.asarray(ds.scene_gt_info(sid)[im_id][k].bbox_visib, np.float64)
-            c, s = G.crop_box(box, 1.5)
+            c, s = G.crop_box(np.asarray(gi.bbox_visib, np.float64), 1.5)
             T = np.asarray(G.crop_transform(np.asarray(c), np.asarray(s), size))
             crop = G.warp_crop(img, T, size)
-            out = renderer.render([(gt.obj_id, gt.R, gt.t)], T @ ds.scene_camera(sid)[im_id].K, depth=False)
+            out = renderer.render([(gt.obj_id, gt.R, gt.t)], T @ K, depth=False)
             over = crop.copy()
             m = out.mask_visib[0] > 0
             over[m] = out.rgb[m]
