@@ -18,6 +18,15 @@ truth boxes, only the targets of the trained objects): one row per run and objec
 ``OUT/test.csv``, and a pooled row (object ``all``) with the AR over those targets. The test set
 only scores the runs: choose between configurations on the validation curves or on principles
 when the test set is the benchmark.
+
+``--from-run NAME=RUN_DIR`` (repeatable) trains nothing: it reads the validation records of
+existing runs (a training folder or a carried state, ``sc6d carry``) and writes their curves, e.g.
+the long run's figure in the README::
+
+    python experiments/learning_curve.py --out experiments/results/learning_curves \\
+        --name long_14objects --from-run long=experiments/state/long
+
+Curves longer than three hours are drawn against hours instead of minutes.
 """
 
 from __future__ import annotations
@@ -79,14 +88,15 @@ def plot(rows: list[dict], path: Path) -> None:
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
     names = list(dict.fromkeys(r["config"] for r in rows))
+    hours = max((r["train_min"] for r in rows), default=0.0) > 180
     for name in names:
         rs = [r for r in rows if r["config"] == name]
-        x = [r["train_min"] for r in rs]
+        x = [r["train_min"] / 60 if hours else r["train_min"] for r in rs]
         axes[0].plot(x, [r["val_ar"] for r in rs], "o-", label=name)
         axes[1].plot(x, [r["val_rot_median_deg"] for r in rs], "o-", label=name)
         axes[2].plot(x, [100 * r["val_depth_rel_median"] for r in rs], "o-", label=name)
     for ax, t in zip(axes, ("validation AR (MSSD, MSPD)", "median rotation error [deg]", "median depth error [%]")):
-        ax.set_xlabel("training minutes (2 CPU cores)")
+        ax.set_xlabel(f"training {'hours' if hours else 'minutes'} (2 CPU cores)")
         ax.set_title(t)
         ax.grid(alpha=0.3)
     axes[1].set_yscale("log")
@@ -110,7 +120,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--test-images", type=int, default=0, help="also score each final model on N rendered test images")
     p.add_argument("--test-dataset", default=None,
                    help="score each final model on this BOP test set (GT boxes; trained objects only)")
+    p.add_argument("--from-run", action="append", default=[], metavar="NAME=RUN_DIR",
+                   help="plot the validation records of an existing run (repeatable); trains nothing")
+    p.add_argument("--name", default="curves", help="file name of the CSV and the plot in OUT (default curves)")
     args = p.parse_args(argv)
+    if args.from_run:
+        return _from_runs(args)
     os.environ.setdefault("MUJOCO_GL", "egl")
     try:
         configs = [parse_config(c) for c in (args.config or ["preset:"])]
@@ -149,8 +164,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"learning_curve: error: run {name} failed (exit {rc})", file=sys.stderr)
             return rc
         all_rows += curve_rows(name, run)
-        _write_csv(out / "curves.csv", all_rows, COLUMNS)
-        plot(all_rows, out / "curves.png")
+        _write_csv(out / f"{args.name}.csv", all_rows, COLUMNS)
+        plot(all_rows, out / f"{args.name}.png")
     if args.test_dataset:
         _test_dataset(args, out, [n for n, _ in configs])
     elif args.test_images:
@@ -159,7 +174,37 @@ def main(argv: list[str] | None = None) -> int:
         last = [r for r in all_rows if r["config"] == name][-1]
         print(f"{name:>16}: {last['train_min']:.1f} min, val AR {last['val_ar']:.3f}, rotation "
               f"{last['val_rot_median_deg']:.1f} deg, depth {100 * last['val_depth_rel_median']:.2f} %")
-    print(f"learning_curve: wrote {out / 'curves.csv'} and {out / 'curves.png'}")
+    print(f"learning_curve: wrote {out / (args.name + '.csv')} and {out / (args.name + '.png')}")
+    return 0
+
+
+def _from_runs(args) -> int:
+    """``--from-run``: the curves of existing runs, nothing trained."""
+    runs = []
+    for item in args.from_run:
+        name, sep, d = item.partition("=")
+        run = Path(d)
+        if not sep or not name or not d:
+            print(f"learning_curve: error: --from-run expects NAME=RUN_DIR, got {item!r}", file=sys.stderr)
+            return 2
+        if not (run / "metrics.jsonl").is_file() or not (run / "config.json").is_file():
+            print(f"learning_curve: error: --from-run {d}: not a training run (no metrics.jsonl and config.json)",
+                  file=sys.stderr)
+            return 2
+        runs.append((name, run))
+    rows = [r for name, run in runs for r in curve_rows(name, run)]
+    if not rows:
+        print("learning_curve: error: no validation records in those runs", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    _write_csv(out / f"{args.name}.csv", rows, COLUMNS)
+    plot(rows, out / f"{args.name}.png")
+    for name, _ in runs:
+        last = [r for r in rows if r["config"] == name][-1]
+        print(f"{name:>16}: step {last['step']}, {last['train_min']:.1f} min, val AR {last['val_ar']:.3f}, rotation "
+              f"{last['val_rot_median_deg']:.1f} deg, depth {100 * last['val_depth_rel_median']:.2f} %")
+    print(f"learning_curve: wrote {out / (args.name + '.csv')} and {out / (args.name + '.png')}")
     return 0
 
 

@@ -136,6 +136,13 @@ def test_learning_curve_harness_writes_csv_and_plot(tmp_path, models):
     assert r2.returncode == 0 and "already complete" in r2.stdout
     bad = subprocess.run(cmd[:-4] + ["--config", "nocolon"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "NAME:KEY=VALUE" in bad.stderr
+    # --from-run redraws existing runs' curves without training: the same rows under another name
+    lc = _harness()
+    assert lc.main(["--out", str(tmp_path / "plots"), "--name", "ab", "--from-run", f"a={out / 'a'}",
+                    "--from-run", f"b={out / 'b'}"]) == 0
+    assert list(csv.DictReader(open(tmp_path / "plots" / "ab.csv"))) == rows
+    assert (tmp_path / "plots" / "ab.png").stat().st_size > 10_000
+    assert lc.main(["--out", str(tmp_path / "plots"), "--from-run", f"x={tmp_path}"]) == 2
 
 
 def _harness():
