@@ -4,6 +4,11 @@
     python experiments/sweep.py so3-samples --run RUN_DIR|builtin --out DIR [--budget tiny|medium|full] [--sizes 20000,60000]
                                             [--no-refine] [--dataset BOP_DIR]
 
+The IPDF row is the paper's variant: the full model (+ TTA) with an Implicit-PDF-style head,
+as wide as the preset's SO(3) encoder, instead of the encoder. ``ablation.md`` also puts the
+paper's row differences (``DELTAS``) beside ours (``deltas.csv``: paired over seeds, with their
+separation in seed spreads).
+
 Every configuration runs as separate processes (``sc6d train`` / ``sc6d predict`` / ``sc6d eval``
 through ``python -m sc6d_jax.cli``) with fixed seeds. The built-in objects and a rendered BOP
 test set are created once inside DIR. A run is finished when its scores JSON exists
@@ -96,12 +101,25 @@ ROWS: tuple[Row, ...] = (
     Row("A3", "+ expectation", "A3", ("loss.z_mode=expectation", "loss.z_loss=focal", _NO_PE)),
     Row("A4", "+ PE map", "A4", ("loss.z_mode=expectation", "loss.z_loss=focal", "model.use_pe=true")),
     Row("TTA", "+ TTA (ours)", "A4", ("loss.z_mode=expectation", "loss.z_loss=focal", "model.use_pe=true"), ("--tta",)),
-    Row("IPDF", "A4 with an Implicit-PDF head", "IPDF",
-        ("loss.z_mode=expectation", "loss.z_loss=focal", "model.use_pe=true", "model.rot_head=ipdf")),
+    # The paper's variant: the full model (+ TTA) with an Implicit-PDF head instead of the SO(3)
+    # encoder (0.720 vs 0.739). Its MLP has the SO(3) encoder's hidden width (so3_hidden), so
+    # that the two heads differ in how they score rotations, not in size.
+    Row("IPDF", "+ TTA with an Implicit-PDF head", "IPDF",
+        ("loss.z_mode=expectation", "loss.z_loss=focal", "model.use_pe=true", "model.rot_head=ipdf",
+         "model.ipdf_hidden=@so3_hidden"), ("--tta",)),
 )
 ROW_BY_NAME = {r.name: r for r in ROWS}
 METRICS = (("AR", "bop19_average_recall"), ("AR_MSSD", "bop19_average_recall_mssd"),
            ("AR_MSPD", "bop19_average_recall_mspd"), ("AR_VSD", "bop19_average_recall_vsd"))
+#: The pose-error breakdown (``sc6d eval``'s ``breakdown.overall``) beside the recalls: the
+#: median rotation error in degrees and the median relative depth error in per cent.
+BREAKDOWN = (("rot_deg", "rot_median_deg", 1.0), ("depth_pct", "depth_rel_median", 100.0))
+#: The paper's Table 3 (T-LESS, PBR training; ../shared/REFERENCE.md section 1) and the row
+#: pairs whose differences it reports: (row, against, what the difference measures).
+PAPER_AR = {"A0": 0.658, "A1": 0.707, "A2": 0.716, "A3": 0.718, "A4": 0.729, "TTA": 0.739, "IPDF": 0.720}
+DELTAS = (("A1", "A0", "z classification over regression"), ("A2", "A1", "focal loss"),
+          ("A3", "A2", "expectation decoding"), ("A4", "A3", "PE map"), ("TTA", "A4", "TTA"),
+          ("TTA", "IPDF", "SO(3) encoder over an Implicit-PDF head"))
 
 
 # --------------------------------------------------------------------------- processes
@@ -193,14 +211,47 @@ def _read_scores(path: Path) -> dict[str, Any]:
     return json.loads(path.read_text(encoding="utf-8"))
 
 
+def _run_values(sc: dict[str, Any]) -> dict[str, float]:
+    """The recalls and the breakdown of one run's scores JSON (NaN where absent)."""
+    vals = {}
+    for m, key in METRICS:
+        v = sc.get(key)
+        vals[m] = float("nan") if v is None else float(v)
+    overall = (sc.get("breakdown") or {}).get("overall") or {}
+    for m, key, scale in BREAKDOWN:
+        v = overall.get(key)
+        vals[m] = float("nan") if v is None else scale * float(v)
+    return vals
+
+
+def ablation_deltas(per_seed: dict[str, dict[int, dict[str, float]]]) -> list[dict[str, Any]]:
+    """The paper's row differences (:data:`DELTAS`) measured on the seeds both rows finished:
+    the mean and sample std of the paired AR differences, the larger of the two rows' seed
+    spreads, how many of those spreads the difference is, and whether the paper's sign holds."""
+    out = []
+    for a, b, what in DELTAS:
+        seeds = sorted(set(per_seed.get(a, {})) & set(per_seed.get(b, {})))
+        diffs = [per_seed[a][sd]["AR"] - per_seed[b][sd]["AR"] for sd in seeds]
+        mean, std = _mean_std(diffs)
+        spread = max(_mean_std([per_seed[r][sd]["AR"] for sd in seeds])[1] for r in (a, b)) if seeds else float("nan")
+        paper = PAPER_AR[a] - PAPER_AR[b]
+        sep = abs(mean) / spread if seeds and spread > 0 else float("nan")
+        same = "-" if not seeds else ("yes" if mean * paper > 0 else "no")
+        out.append({"delta": f"{a} - {b}", "what": what, "n_seeds": len(seeds), "paper": paper, "mean": mean,
+                    "std": std, "spread": spread, "separation": sep, "sign_reproduced": same})
+    return out
+
+
 def summarize_ablation(out: Path, rows: Sequence[Row], seeds: Sequence[int], budget_name: str) -> list[Path]:
-    """ablation.csv/.md, runs.csv and ablation.png from the finished runs' scores."""
+    """ablation.csv/.md, runs.csv, deltas.csv and ablation.png from the finished runs' scores."""
     from sc6d_jax._io import atomic_write_text
     from sc6d_jax.viz import grouped_bar_chart, save_figure
 
+    names = [m for m, _ in METRICS] + [m for m, _, _ in BREAKDOWN]
     per_run, table = [], []
+    per_seed: dict[str, dict[int, dict[str, float]]] = {}
     for row in rows:
-        vals: dict[str, list[float]] = {m: [] for m, _ in METRICS}
+        vals: dict[str, list[float]] = {m: [] for m in names}
         done_seeds = []
         for seed in seeds:
             p = out / "scores" / f"{row.name}_s{seed}.json"
@@ -208,28 +259,37 @@ def summarize_ablation(out: Path, rows: Sequence[Row], seeds: Sequence[int], bud
                 continue
             sc = _read_scores(p)
             done_seeds.append(seed)
-            line = [row.name, row.label, seed]
-            for m, key in METRICS:
-                v = sc.get(key)
-                v = float("nan") if v is None else float(v)
-                vals[m].append(v)
-                line.append(v)
+            v = _run_values(sc)
+            per_seed.setdefault(row.name, {})[seed] = v
+            for m in names:
+                vals[m].append(v[m])
             t = sc.get("bop19_average_time_per_image")
-            line.append(float(t) if t is not None else float("nan"))
-            per_run.append(line)
-        stats = {m: _mean_std(vals[m]) for m, _ in METRICS}
+            per_run.append([row.name, row.label, seed] + [v[m] for m in names] + [float(t) if t is not None else float("nan")])
+        stats = {m: _mean_std(vals[m]) for m in names}
         table.append((row, done_seeds, stats))
-    header = ["row", "description", "seed"] + [m for m, _ in METRICS] + ["time_per_image_s"]
+    header = ["row", "description", "seed"] + names + ["time_per_image_s"]
     written = [atomic_write_text(out / "runs.csv", _csv_text(header, per_run))]
-    agg_header = ["row", "description", "n_seeds"] + [f"{m}_{k}" for m, _ in METRICS for k in ("mean", "std")]
-    agg = [[r.name, r.label, len(s)] + [v for m, _ in METRICS for v in st[m]] for r, s, st in table]
+    agg_header = ["row", "description", "n_seeds", "paper_AR"] + [f"{m}_{k}" for m in names for k in ("mean", "std")]
+    agg = [[r.name, r.label, len(s), PAPER_AR.get(r.name, float("nan"))] + [v for m in names for v in st[m]]
+           for r, s, st in table]
     written.append(atomic_write_text(out / "ablation.csv", _csv_text(agg_header, agg)))
+    deltas = ablation_deltas(per_seed)
+    d_header = ["delta", "what", "n_seeds", "paper", "mean", "std", "spread", "separation", "sign_reproduced"]
+    written.append(atomic_write_text(out / "deltas.csv", _csv_text(d_header, [[d[k] for k in d_header] for d in deltas])))
     md = [f"Ablation (paper Table 3) on the built-in objects, budget `{budget_name}`; "
-          "mean ± sample std over seeds.", "",
-          "| row | setting | seeds | AR | AR_MSSD | AR_MSPD | AR_VSD |", "|---|---|---|---|---|---|---|"]
+          "mean ± sample std over seeds; rotation and depth: medians of the pose-error breakdown.", "",
+          "| row | setting | seeds | AR | AR_MSSD | AR_MSPD | AR_VSD | rotation [deg] | depth [%] | paper AR |",
+          "|---|---|---|---|---|---|---|---|---|---|"]
     for r, s, st in table:
         md.append(f"| {r.name} | {r.label} | {','.join(map(str, s)) or '-'} | "
-                  + " | ".join(_fmt(*st[m]) for m, _ in METRICS) + " |")
+                  + " | ".join(_fmt(*st[m]) for m in names) + f" | {PAPER_AR.get(r.name, float('nan')):.3f} |")
+    md += ["", "Differences (paired over the seeds both rows finished; spread = the larger of the two rows' "
+           "seed std; separation = |difference| / spread):", "",
+           "| difference | what | seeds | paper | ours | separation | paper's sign |", "|---|---|---|---|---|---|---|"]
+    for d in deltas:
+        sep = "-" if not math.isfinite(d["separation"]) else f"{d['separation']:.1f}"
+        md.append(f"| {d['delta']} | {d['what']} | {d['n_seeds']} | {d['paper']:+.3f} | "
+                  + ("-" if not d["n_seeds"] else f"{d['mean']:+.3f} ± {d['std']:.3f}") + f" | {sep} | {d['sign_reproduced']} |")
     written.append(atomic_write_text(out / "ablation.md", "\n".join(md) + "\n"))
     shown = [(r, st) for r, s, st in table if s]
     if shown:
@@ -256,8 +316,18 @@ def _train_args(budget: Budget, models: Path, run_dir: Path, seed: int, sets: Se
     if budget.obj_ids:
         args += ["--obj-ids", ",".join(map(str, budget.obj_ids))]
     for s in (*budget.train_sets, *sets):
-        args += ["--set", s]
+        args += ["--set", _resolve_set(budget.preset, s)]
     return args
+
+
+def _resolve_set(preset_name: str, item: str) -> str:
+    """``model.X=@Y``: the value of the preset's ``model.Y`` (e.g. the IPDF row's width)."""
+    key, _, value = item.partition("=")
+    if not value.startswith("@"):
+        return item
+    from sc6d_jax.train import preset
+
+    return f"{key}={getattr(preset(preset_name).model, value[1:])}"
 
 
 def _training_finished(run_dir: Path) -> bool:

@@ -252,3 +252,56 @@ def test_shipped_model_by_name(run_dir, est, scene, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "lmo").mkdir()
     assert pretrained.resolve("lmo") == (Path("lmo"), Path("lmo") / "library")
+
+
+# ----------------------------------------------------------------------------- Implicit-PDF head
+
+
+def test_ipdf_matching_equals_the_heads_dense_scores(monkeypatch):
+    """Chunked scoring of an Implicit-PDF head over a padded library = the head's own logits
+    (``rotation_logits``) over all rotations: the same top-k rows, scores and softmax."""
+    import sc6d_jax.inference._matching as matching
+    from sc6d_jax.geometry import random_rotations
+    from sc6d_jax.inference import ipdf_match_blocks, pad_library
+    from sc6d_jax.model import ModelConfig, init, rotation_features, rotation_logits
+
+    cfg = ModelConfig(n_objects=3, crop_size=32, backbone="tiny", width=8, decoder_width=16, feat_dim=8, emb_dim=8,
+                      n_z_bins=16, pose_width=8, head_hidden=16, so3_hidden=16, ipdf_hidden=16, gn_groups=4,
+                      rot_head="ipdf", ipdf_pe_freqs=1)
+    params = init(jax.random.PRNGKey(1), cfg)
+    R = random_rotations(jax.random.PRNGKey(0), 1000)
+    rng = np.random.default_rng(1)
+    q = jnp.asarray(rng.normal(size=(5, 8)), jnp.float32)
+    obj = jnp.asarray([0, 2, 1, 2, 0], jnp.int32)
+    dense = rotation_logits(params, cfg, {"rot_emb": q}, R, obj)  # (5, 1000)
+    v, i = jax.lax.top_k(dense, 4)
+    prob = jnp.exp(v - jax.nn.logsumexp(dense, axis=1, keepdims=True))
+    blocks, n = pad_library(rotation_features(R, cfg.ipdf_pe_freqs)[None], 256)  # 4 blocks, the last padded
+    monkeypatch.setattr(matching, "IPDF_CHUNK_ELEMS", 5 * 16 * 64)  # 64 rotations per chunk: 16 chunks
+    m = ipdf_match_blocks(params["rot_head"], q, blocks[0], obj, n, 4)
+    np.testing.assert_array_equal(np.asarray(m.index), np.asarray(i))
+    np.testing.assert_allclose(np.asarray(m.score), np.asarray(v), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(m.prob), np.asarray(prob), rtol=1e-4, atol=1e-7)
+
+
+def test_ipdf_model_trains_validates_and_predicts(tmp_path, models, scene):
+    """`sc6d train` of an Implicit-PDF model (real steps, validation at the checkpoint), then the
+    estimator scores the library with the head: valid poses, TTA, top-k; refinement refused."""
+    from sc6d_jax.cli import main as sc6d
+
+    run = tmp_path / "ipdf"
+    assert sc6d(["train", "--models", str(models), "--out", str(run), "--preset", "tiny", "--obj-ids", "1,3",
+                 "--steps", "4", "--checkpoint-every", "4", "--set", "model.rot_head=ipdf", "--set", "val_crops=16",
+                 "--no-progress", "--quiet"]) == 0
+    rec = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()][-1]
+    assert rec["step"] == 4 and 0.0 <= rec["val_ar"] <= 1.0 and 0.0 <= rec["val_rot_median_deg"] <= 180.0
+    est = Estimator.load(run, library_size=LIB, progress=False)
+    assert est.library.emb.shape == (1, LIB, 9) and not (run / "library").exists()
+    image, K, boxes, _ = scene
+    for tta in (False, True):
+        out = est.predict(image, K, boxes, [1, 3, 3], tta=tta, top_k=3)
+        for p in out:
+            assert _is_rotation(p.R) and _is_rotation(p.R_topk) and np.all(np.isfinite(p.t)) and p.t[2] > 0
+            assert np.all(np.diff(p.score_topk) <= 1e-6) and 0.0 < p.prob <= 1.0
+    with pytest.raises(ValueError, match="Implicit-PDF"):
+        est.predict(image, K, boxes, [1, 3, 3], refine=True)

@@ -81,8 +81,14 @@ def test_ablation_resumes_and_writes_tables(ablation_dir):
         assert float(agg[r["row"]]["AR_mean"]) == pytest.approx(sc["bop19_average_recall"], abs=1e-4)
         assert float(agg[r["row"]]["AR_std"]) == 0.0 and agg[r["row"]]["n_seeds"] == "1"
         assert 0.0 <= sc["bop19_average_recall"] <= 1.0
+    for r in runs:  # the pose-error breakdown beside the recalls
+        sc = json.loads((out / "scores" / f"{r['row']}_s0.json").read_text())
+        assert float(r["rot_deg"]) == pytest.approx(sc["breakdown"]["overall"]["rot_median_deg"], abs=1e-3)
+        assert float(r["depth_pct"]) == pytest.approx(100 * sc["breakdown"]["overall"]["depth_rel_median"], abs=1e-3)
     md = (out / "ablation.md").read_text()
     assert "| A0 | z regression | 0 |" in md and "| TTA | + TTA (ours) | 0 |" in md
+    assert "| A1 - A0 | z classification over regression | 0 | +0.049 | - | - | - |" in md
+    assert [d["delta"] for d in _read_csv(out / "deltas.csv")][-1] == "TTA - IPDF"
     assert (out / "ablation.png").read_bytes()[:8] == PNG
     figs = sorted((out / "figures" / "A0_s0").glob("*.png"))
     assert figs and all(p.read_bytes()[:8] == PNG for p in figs)
@@ -201,7 +207,7 @@ def test_every_budget_and_row_builds_a_valid_training_config(tmp_path):
             cfg = build_config(build_parser().parse_args([str(a) for a in args[1:]]))
             assert cfg.preset == budget.preset
             for item in row.sets:
-                key, value = item.split("=")
+                key, value = sweep._resolve_set(budget.preset, item).split("=")
                 section, field_ = key.split(".")
                 assert str(getattr(getattr(cfg, section), field_)).lower() == value.lower(), (name, row.name, item)
             if name != "tiny":
@@ -210,3 +216,35 @@ def test_every_budget_and_row_builds_a_valid_training_config(tmp_path):
                 assert cfg.stream.obj_ids == budget.obj_ids
     medium = sweep.BUDGETS["medium"]
     assert medium.steps == 4000 and len(medium.obj_ids) == 4 and medium.seeds == (0, 1, 2)
+
+
+def _sweep_module():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("sweep_module", SWEEP)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["sweep_module"] = mod  # dataclasses look their module up while the class is made
+    try:
+        spec.loader.exec_module(mod)
+    finally:
+        del sys.modules["sweep_module"]
+    return mod
+
+
+def test_ablation_deltas_pair_seeds_and_compare_signs_with_the_paper():
+    sw = _sweep_module()
+    per_seed = {"A0": {0: {"AR": 0.20}, 1: {"AR": 0.22}, 2: {"AR": 0.30}},
+                "A1": {0: {"AR": 0.26}, 1: {"AR": 0.24}},  # seed 2 unfinished: paired over 0 and 1
+                "TTA": {0: {"AR": 0.30}, 1: {"AR": 0.31}}, "IPDF": {0: {"AR": 0.33}, 1: {"AR": 0.35}}}
+    d = {x["delta"]: x for x in sw.ablation_deltas(per_seed)}
+    a = d["A1 - A0"]
+    assert a["n_seeds"] == 2 and a["mean"] == pytest.approx(0.04) and a["paper"] == pytest.approx(0.049)
+    assert a["std"] == pytest.approx(0.0283, abs=1e-4)  # differences 0.06 and 0.02
+    assert a["spread"] == pytest.approx(0.0141, abs=1e-4) and a["separation"] == pytest.approx(2.83, abs=0.01)
+    assert a["sign_reproduced"] == "yes"
+    assert d["TTA - IPDF"]["mean"] == pytest.approx(-0.035) and d["TTA - IPDF"]["sign_reproduced"] == "no"
+    assert d["A2 - A1"]["n_seeds"] == 0 and d["A2 - A1"]["sign_reproduced"] == "-"
+    # the IPDF row trains an Implicit-PDF head as wide as the preset's SO(3) encoder, and predicts with TTA
+    row = sw.ROW_BY_NAME["IPDF"]
+    args = [str(x) for x in sw._train_args(sw.BUDGETS["medium"], Path("m"), Path("r"), 0, row.sets)]
+    assert "model.rot_head=ipdf" in args and "model.ipdf_hidden=128" in args and row.predict == ("--tta",)

@@ -10,7 +10,15 @@ from sc6d_jax.inference._library import (
     load_or_build_library,
     pack_library,
 )
-from sc6d_jax.inference._matching import MatchResult, auto_block, match, match_blocks, match_dense, pad_library
+from sc6d_jax.inference._matching import (
+    MatchResult,
+    auto_block,
+    ipdf_match_blocks,
+    match,
+    match_blocks,
+    match_dense,
+    pad_library,
+)
 from sc6d_jax.inference._predictor import predict_crops, rotate_crops, rz90
 from sc6d_jax.inference._refine import refine_rotation, refine_rotations
 
@@ -28,6 +36,7 @@ __all__ = [
     "library_key",
     "load_or_build_library",
     "match",
+    "ipdf_match_blocks",
     "match_blocks",
     "match_dense",
     "pack_library",

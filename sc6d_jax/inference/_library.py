@@ -58,7 +58,8 @@ def library_grid(size: int | tuple[int, int]) -> tuple[int, int]:
 
 @dataclass(frozen=True)
 class RotationLibrary:
-    """Rotations ``R (N, 3, 3)`` float32 and embeddings ``emb (O, N, E)`` float32 (unit rows)."""
+    """Rotations ``R (N, 3, 3)`` float32 and embeddings ``emb (O, N, E)`` float32 (unit rows); for
+    an Implicit-PDF model, ``emb`` holds the rotations' encodings ``(1, N, D)`` instead."""
 
     R: np.ndarray
     emb: np.ndarray
@@ -118,6 +119,15 @@ def embed_library(params: dict, mcfg: Any, R: np.ndarray, chunk: int = 32768, pr
     return out
 
 
+def ipdf_library_features(mcfg: Any, R: np.ndarray) -> np.ndarray:
+    """The "library" of an Implicit-PDF head (``rot_head="ipdf"``): the rotations' encodings
+    ``(1, N, D)`` (shared by all objects; the head scores each one with the crop at inference,
+    :func:`sc6d_jax.inference.ipdf_match_blocks`). Cheap to compute, so never cached."""
+    from sc6d_jax.model import rotation_features
+
+    return np.asarray(rotation_features(jnp.asarray(R, jnp.float32), mcfg.ipdf_pe_freqs), np.float32)[None]
+
+
 def load_or_build_library(
     params: dict,
     mcfg: Any,
@@ -128,11 +138,13 @@ def load_or_build_library(
 ) -> RotationLibrary:
     """The rotation library of a model, read from ``cache_dir`` when a file with the same key
     exists (and is intact), otherwise built and written there atomically (``cache_dir=None``:
-    no cache)."""
+    no cache). An Implicit-PDF model's library is its rotations' encodings (nothing cached)."""
     n_views, n_inplane = library_grid(size)
     grid = (n_views, n_inplane, int(seed))
-    key = library_key(params, mcfg, grid)
     R = so3_grid(n_views, n_inplane, seed=seed)
+    if mcfg.rot_head == "ipdf":
+        return RotationLibrary(R=R, emb=ipdf_library_features(mcfg, R), grid=grid, key="ipdf")
+    key = library_key(params, mcfg, grid)
     path = None if cache_dir is None else Path(cache_dir) / f"so3lib_{key}.npz"
     if path is not None and path.is_file():
         try:

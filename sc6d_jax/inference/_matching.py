@@ -212,3 +212,55 @@ def match_dense(queries, library, k: int = 1, tau: float = 0.1) -> MatchResult:
     v, i = jax.lax.top_k(s, k)
     lse = jax.nn.logsumexp(s / tau, axis=1)
     return MatchResult(index=i.astype(jnp.int32), score=v, prob=jnp.exp(v / tau - lse[:, None]))
+
+
+# --------------------------------------------------------------------------- Implicit-PDF head
+#: Scores (crops x rotations x hidden units) alive at once in :func:`ipdf_match_blocks`.
+IPDF_CHUNK_ELEMS = 1 << 22
+
+
+def ipdf_match_blocks(head: dict, queries, feat_blocks, obj_idx, n_valid: int, k: int = 1) -> MatchResult:
+    """Top-k library rotations for an Implicit-PDF head (``rot_head="ipdf"``), whose score is an
+    MLP of the crop embedding and the rotation, so nothing per rotation can be precomputed but
+    its encoding.
+
+    ``head``: the model's ``rot_head`` parameters (per-object leaves); ``queries`` (B, E) crop
+    embeddings; ``feat_blocks`` ``(nb, D, block)``: the library's rotation encodings
+    (:func:`sc6d_jax.model.rotation_features`, shared by all objects) packed by
+    :func:`pad_library`; ``obj_idx`` (B,). Every block is scored in chunks of at most
+    :data:`IPDF_CHUNK_ELEMS` hidden activations, with a running top-k and a running
+    log-sum-exp: ``score`` is the head's logit, ``prob`` its softmax over the whole library
+    (what training's InfoNCE normalised).
+    """
+    nb, d, bs = feat_blocks.shape
+    b = queries.shape[0]
+    obj_idx = jnp.asarray(obj_idx, jnp.int32)
+    sel = jax.tree.map(lambda a: a[obj_idx], head)  # leaves (B, ...)
+    h = sel["hidden"]["w"].shape[-1]
+    a_img = jnp.einsum("be,beh->bh", queries.astype(jnp.float32), sel["img_in"]["w"]) + sel["rot_in"]["b"]
+    sub = int(np.gcd(bs, 1 << max(int(np.log2(max(IPDF_CHUNK_ELEMS // max(b * h, 1), 1))), 0)))
+    ns = bs // sub
+    neg = jnp.float32(-jnp.inf)
+    kk = min(k, sub)
+
+    def body(carry, js):
+        best_v, best_i, m, z = carry
+        j, c = js // ns, js % ns
+        f = jax.lax.dynamic_slice_in_dim(jax.lax.dynamic_index_in_dim(feat_blocks, j, 0, False), c * sub, sub, axis=1)
+        x = jax.nn.relu(a_img[:, None, :] + jnp.einsum("dq,bdh->bqh", f, sel["rot_in"]["w"]))
+        x = jax.nn.relu(jnp.einsum("bqh,bhg->bqg", x, sel["hidden"]["w"]) + sel["hidden"]["b"][:, None, :])
+        s = jnp.einsum("bqg,bg->bq", x, sel["out"]["w"][..., 0]) + sel["out"]["b"]  # (B, sub)
+        row = js * sub + jnp.arange(sub, dtype=jnp.int32)
+        s = jnp.where(row[None, :] < n_valid, s, neg)
+        m_new = jnp.maximum(m, jnp.max(s, axis=1))
+        z = z * jnp.exp(m - m_new) + jnp.sum(jnp.exp(s - m_new[:, None]), axis=1)
+        v, i = jax.lax.top_k(s, kk)
+        allv = jnp.concatenate([best_v, v], axis=1)
+        alli = jnp.concatenate([best_i, row[i]], axis=1)
+        best_v, pick = jax.lax.top_k(allv, k)
+        return (best_v, jnp.take_along_axis(alli, pick, axis=1), m_new, z), None
+
+    init = (jnp.full((b, k), neg, jnp.float32), jnp.zeros((b, k), jnp.int32), jnp.full((b,), -1e30, jnp.float32),
+            jnp.zeros((b,), jnp.float32))
+    (v, i, m, z), _ = jax.lax.scan(body, init, jnp.arange(nb * ns, dtype=jnp.int32))
+    return MatchResult(index=i, score=v, prob=jnp.exp(v - m[:, None]) / z[:, None])

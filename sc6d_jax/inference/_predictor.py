@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 
 from sc6d_jax.geometry import allocentric_to_egocentric, crop_transform, decode_translation, pe_map
-from sc6d_jax.inference._matching import _match_blocks
+from sc6d_jax.inference._matching import _match_blocks, ipdf_match_blocks
 from sc6d_jax.inference._refine import refine_rotations
 
 _RZ90 = ((0.0, -1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0))
@@ -74,7 +74,8 @@ def predict_crops(
 
     Args:
         params: model parameters.
-        lib_blocks: per-object library blocks ``(O, nb, E, block)`` (:func:`pack_library`); lib_R ``(N,3,3)``.
+        lib_blocks: per-object library blocks ``(O, nb, E, block)`` (:func:`pack_library`), or for an
+            Implicit-PDF model the rotations' encodings ``(1, nb, D, block)``; lib_R ``(N,3,3)``.
         rgb: uint8 crops ``(B,S,S,3)`` warped with ``T = crop_transform(center, side, S)``.
         K: ``(B,3,3)`` image intrinsics; center ``(B,2)``, side ``(B,)``: the crop boxes.
         obj_idx: ``(B,)`` object index of the model.
@@ -107,7 +108,12 @@ def predict_crops(
     K_in = jnp.concatenate([K] * n_copies, axis=0)
     dz = _z_decode(out, lcfg, z_range, K_in).astype(f32).reshape(n_copies, B)
     dxy = out["delta_xy"].astype(f32).reshape(n_copies, B, 2)
-    m = _match_blocks(emb, lib_blocks, n_valid, top_k, tau, True, obj_in)
+    if mcfg.rot_head == "ipdf":  # the head scores every library rotation with the crop
+        if refine:
+            raise ValueError("refine needs the SO(3) encoder (rot_head='so3'); this model has an Implicit-PDF head")
+        m = ipdf_match_blocks(params["rot_head"], emb, lib_blocks[0], obj_in, n_valid, top_k)
+    else:
+        m = _match_blocks(emb, lib_blocks, n_valid, top_k, tau, True, obj_in)
     idx = m.index.reshape(n_copies, B, top_k)
     score = m.score.reshape(n_copies, B, top_k)
     prob = m.prob.reshape(n_copies, B, top_k)
