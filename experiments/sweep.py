@@ -22,7 +22,8 @@ continuous symmetric), 1 scene x 2 images, a 20k library (a test runs a sweep in
 ``medium`` = the cpu preset for 4,000 steps (about 14 minutes on 2 cores) on four objects of
 different symmetry types (1 L-bracket: none, 3 cone: continuous, 5 box: three 180-degree
 flips, 8 mug: none but a handle that can hide), 4 scenes x 10 images, the 480k library: 7 rows x
-3 seeds (6 trainings per seed: TTA reuses A4's) in about 5 CPU-hours, resumable in legs;
+3 seeds (6 trainings per seed: TTA reuses A4's; IPDF's steps cost about twice the others') in
+about 6 CPU-hours, resumable in legs;
 ``full`` = the cpu preset on all 14 built-in objects, 4 scenes x 10 images, the paper's 480k
 library (an hour of training per run: 18 hours for 3 seeds).
 
