@@ -52,12 +52,12 @@ def setup(run: Path, step: int | None, steps: int, val_crops: int | None = None)
     from sc6d_jax.train.loop import make_optimizer
 
     step = int(read_meta(find_checkpoint(run, step))["step"])
-    params, cfg = load_checkpoint(run, step)
+    params, cfg = load_checkpoint(run, step, raw=True)  # the run's own trajectory, not its average
     lr_now = float(make_optimizer(cfg)[1](step))
     optim = dataclasses.replace(cfg.optim, lr=max(lr_now, cfg.optim.lr_end), warmup_steps=0, warmup_fraction=0.01)
     stream = dataclasses.replace(cfg.stream, curriculum=0, curriculum_fraction=0.0)
     pcfg = cfg.replace(optim=optim, stream=stream, steps=steps, checkpoint_every=steps, keep_checkpoints=1,
-                       preset=f"anneal-probe:{cfg.preset}@{step}",
+                       preset=f"anneal-probe:{cfg.preset}@{step}", ema=0.0,
                        val_crops=cfg.val_crops if val_crops is None else val_crops)
     return step, params, pcfg
 

@@ -2,7 +2,8 @@
 
 A checkpoint is a directory ``RUN_DIR/checkpoints/ckpt_00001000/{state.npz, meta.json}``.
 ``state.npz`` holds the flattened training state with path keys (``params/...``,
-``opt_state/...``, ``rng_key``); ``meta.json`` holds the step, the config, a SHA-256 of the
+``opt_state/...``, ``rng_key``; with a moving average of the parameters also ``ema/...`` and
+``ema_start``, the step where the average began); ``meta.json`` holds the step, the config, a SHA-256 of the
 npz and informative fields.  Each checkpoint directory is written under a hidden temporary name
 and renamed when complete (``sc6d_jax._io.atomic_directory``), so a process killed at any moment
 leaves either the complete checkpoint or none; old checkpoints are renamed to a hidden name
@@ -40,6 +41,7 @@ __all__ = [
     "flatten_with_paths",
     "load_checkpoint",
     "read_checkpoint",
+    "read_ema",
     "read_meta",
     "read_metrics_upto",
     "save_checkpoint",
@@ -136,6 +138,7 @@ def save_checkpoint(
     config: dict[str, Any],
     keep: int = 3,
     extra_meta: dict[str, Any] | None = None,
+    ema: tuple[Any, int] | None = None,
 ) -> Path:
     """Write checkpoint ``step`` atomically and keep only the ``keep`` newest ones.
 
@@ -147,6 +150,7 @@ def save_checkpoint(
         config: ``TrainConfig.to_dict()``.
         keep: number of newest checkpoints to keep (>= 1).
         extra_meta: informative JSON-able fields stored in meta.json.
+        ema: ``(average parameters, step where the average began)``, or None.
 
     Returns:
         The checkpoint directory.
@@ -158,6 +162,9 @@ def save_checkpoint(
     _remove_stale(root)
     arrays = {**flatten_with_paths(params, "params"), **flatten_with_paths(opt_state, "opt_state")}
     arrays["rng_key"] = _host(rng_key)
+    if ema is not None:
+        arrays.update(flatten_with_paths(ema[0], "ema"))
+        arrays["ema_start"] = np.asarray(int(ema[1]), np.int64)
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     data = buf.getvalue()
@@ -246,6 +253,25 @@ def read_checkpoint(
     return params, opt_state, arrays["rng_key"], meta
 
 
+def _arrays(ckpt_dir: Path) -> dict[str, np.ndarray]:
+    _, data = verify_state(ckpt_dir)
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (zipfile.BadZipFile, ValueError, OSError) as exc:
+        raise ValueError(f"checkpoint {ckpt_dir / _STATE} is corrupt: {exc}") from exc
+
+
+def read_ema(ckpt_dir: str | os.PathLike, params_template: Any) -> tuple[Any, int] | None:
+    """``(average parameters, step where the average began)`` of a checkpoint that holds a moving
+    average of its parameters (``TrainConfig.ema``), else None."""
+    ckpt_dir = Path(ckpt_dir)
+    arrays = _arrays(ckpt_dir)
+    if "ema_start" not in arrays:
+        return None
+    return unflatten_like(params_template, arrays, "ema", str(ckpt_dir / _STATE)), int(arrays["ema_start"])
+
+
 def find_checkpoint(run_dir: str | os.PathLike, step: int | None = None) -> Path:
     """The checkpoint directory of a run's newest (or ``step``) checkpoint.
 
@@ -269,13 +295,15 @@ def find_checkpoint(run_dir: str | os.PathLike, step: int | None = None) -> Path
     return found[step]
 
 
-def load_checkpoint(run_dir: str | os.PathLike, step: int | None = None) -> tuple[Any, Any]:
+def load_checkpoint(run_dir: str | os.PathLike, step: int | None = None, raw: bool = False) -> tuple[Any, Any]:
     """Parameters and :class:`~sc6d_jax.train.TrainConfig` of a run's newest (or given) checkpoint.
 
     Args:
         run_dir: a run directory written by :func:`sc6d_jax.train.train`, or a checkpoint
             directory ``.../checkpoints/ckpt_XXXXXXXX`` itself.
         step: load this step instead of the newest.
+        raw: the optimiser's parameters even when the checkpoint holds their moving average
+            (``TrainConfig.ema``), which is returned by default: it is what validation scored.
 
     Returns:
         ``(params, config)``: params as a pytree of numpy arrays.
@@ -288,6 +316,10 @@ def load_checkpoint(run_dir: str | os.PathLike, step: int | None = None) -> tupl
     meta = read_meta(ckpt)
     cfg = TrainConfig.from_dict(meta["config"])
     template = jax.eval_shape(lambda p: p, init(jax.random.PRNGKey(0), cfg.model))  # eager: init may use numpy
+    if not raw:
+        ema = read_ema(ckpt, template)
+        if ema is not None:
+            return ema[0], cfg
     params, _, _, _ = read_checkpoint(ckpt, template, None)
     return params, cfg
 

@@ -16,6 +16,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 
@@ -121,7 +122,7 @@ def test_learning_curve_harness_writes_csv_and_plot(tmp_path, models):
     out = tmp_path / "lc"
     cmd = [sys.executable, str(REPO / "experiments" / "learning_curve.py"), "--out", str(out), "--models", str(models),
            "--preset", "tiny", "--obj-ids", str(ASYM_OBJ), "--steps", "20", "--checkpoint-every", "10",
-           "--workers", "0", "--config", "a:val_crops=16", "--config", "b:val_crops=16,optim.lr=1e-3"]
+           "--workers", "0", "--config", "a:val_crops=16", "--config", "b:val_crops=16,optim.lr=1e-3,ema=0.9"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     rows = list(csv.DictReader(open(out / "curves.csv")))
@@ -131,6 +132,20 @@ def test_learning_curve_harness_writes_csv_and_plot(tmp_path, models):
     recs = [json.loads(x) for x in (out / "a" / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in recs] == [10, 20] and all("loss" in r and "val_ar" in r for r in recs)
     assert (out / "curves.png").stat().st_size > 10_000
+    # run b keeps a moving average of its parameters: validated (val_*) and loaded by default,
+    # the raw parameters' validation beside it (val_raw_*)
+    recs_b = [json.loads(x) for x in (out / "b" / "metrics.jsonl").read_text().splitlines()]
+    assert all("val_raw_ar" in r and "val_raw_rot_median_deg" in r for r in recs_b)
+    assert "val_raw_ar" not in recs[-1]
+    from sc6d_jax.checkpoint import find_checkpoint, load_checkpoint, read_ema
+
+    avg, _ = load_checkpoint(out / "b")
+    raw, _ = load_checkpoint(out / "b", raw=True)
+    ema, start = read_ema(find_checkpoint(out / "b"), raw)
+    assert start == 0
+    for x, y, z in zip(jax.tree.leaves(avg), jax.tree.leaves(ema), jax.tree.leaves(raw)):
+        np.testing.assert_array_equal(x, y)
+    assert any(not np.array_equal(x, z) for x, z in zip(jax.tree.leaves(avg), jax.tree.leaves(raw)))
     # finished runs are skipped on a rerun; a bad --config is one error line and status 2
     r2 = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert r2.returncode == 0 and "already complete" in r2.stdout

@@ -15,6 +15,7 @@ import argparse
 import dataclasses
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -469,3 +470,56 @@ def test_stream_settings_reach_the_stream(tmp_path):
     assert (seen["occlusion"], seen["curriculum"], seen["distance"]) == (0.25, 7, (3.0, 12.0))
     with pytest.raises(ValueError, match="stream.distance"):
         StreamSettings(distance=(5, 2))
+
+
+def _state(ckpt: Path, template):
+    from sc6d_jax.checkpoint import read_checkpoint, read_ema
+
+    params, _, _, _ = read_checkpoint(ckpt, template, None)
+    return params, read_ema(ckpt, template)
+
+
+def test_moving_average_of_parameters(tmp_path):
+    """``ema``: the recursion with its ramp, checkpointed beside the raw parameters, resumed bit
+    for bit, switched on at a resume, and never fed back into training."""
+    import jax
+
+    from sc6d_jax.train.checkpoint import checkpoint_dirs
+    from sc6d_jax.train.loop import _ema_decay
+
+    cfg = standin_config(ema=0.9)
+    assert [float(_ema_decay(cfg, n)) for n in (0, 1, 80, 10_000)] == pytest.approx([0.1, 2 / 11, 0.9, 0.9])
+    plain = _run_standin(tmp_path / "plain" / "run", 12)
+    run = tmp_path / "ema" / "run"
+    returned = _run_standin(run, 12, ema=0.9, checkpoint_every=1, keep_checkpoints=20)
+    template = jax.eval_shape(lambda p: p, plain)
+    states = {s: _state(d, template) for s, d in checkpoint_dirs(run)}
+    assert sorted(states) == list(range(1, 13))
+    _assert_same_params(states[12][0], plain)  # the average never feeds back
+    _assert_same_params(states[12][1][0], returned)  # train() returns the average
+    assert all(states[s][1][1] == 0 for s in states)  # begun at step 0
+    for s in range(2, 13):  # ema_s = d ema_{s-1} + (1 - d) p_s, d after s - 1 updates
+        d = float(_ema_decay(cfg, s - 1))
+        for e0, e1, p in zip(jax.tree.leaves(states[s - 1][1][0]), jax.tree.leaves(states[s][1][0]),
+                             jax.tree.leaves(states[s][0])):
+            np.testing.assert_allclose(e1, d * e0 + (1 - d) * p, rtol=1e-5, atol=1e-7)
+    assert not np.array_equal(np.asarray(states[12][1][0]["fc1"]["w"]), np.asarray(plain["fc1"]["w"]))
+    # resumed from step 6 (the later checkpoints removed): the same average and parameters
+    legs = tmp_path / "legs" / "run"
+    _run_standin(legs, 12, ema=0.9, checkpoint_every=3)
+    for s, d in checkpoint_dirs(legs):
+        if s > 6:
+            shutil.rmtree(d)
+    resumed = _run_standin(legs, 12, ema=0.9, checkpoint_every=3, resume=True)
+    _assert_same_params(resumed, returned)
+    _assert_same_params(_state(checkpoint_dirs(legs)[-1][1], template)[0], plain)
+    # switched on when a plain run is resumed at step 5: the average starts there
+    late = tmp_path / "late" / "run"
+    _run_standin(late, 12)
+    for s, d in checkpoint_dirs(late):
+        if s > 5:
+            shutil.rmtree(d)
+    _run_standin(late, 12, ema=0.9, resume=True)
+    params, (ema, start) = _state(checkpoint_dirs(late)[-1][1], template)
+    assert start == 5
+    _assert_same_params(params, plain)

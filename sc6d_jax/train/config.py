@@ -43,7 +43,7 @@ __all__ = [
 ]
 
 #: Fields that steer a run but do not change the trained parameters; a resumed run may change them.
-RUN_ONLY_FIELDS = frozenset({"checkpoint_every", "keep_checkpoints", "log_every", "val_crops"})
+RUN_ONLY_FIELDS = frozenset({"checkpoint_every", "keep_checkpoints", "log_every", "val_crops", "ema"})
 
 
 @dataclass(frozen=True)
@@ -151,7 +151,7 @@ class OptimConfig:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Everything that decides the trained parameters (plus three run-only fields).
+    """Everything that decides the trained parameters (plus the run-only fields).
 
     Attributes:
         model: network configuration (``sc6d_jax.model.ModelConfig``); ``n_objects`` and
@@ -169,6 +169,13 @@ class TrainConfig:
         log_every: metrics.jsonl / progress-bar interval in steps. Run-only.
         val_crops: held-out rendered crops scored at every checkpoint (the pose-error breakdown
             in metrics.jsonl, ``sc6d_jax.train.validate``); 0 = no validation. Run-only.
+        ema: decay per step of an exponential moving average of the parameters (e.g. 0.9995:
+            an average over about the last 2,000 steps; 0 = none). The average never feeds back
+            into training, so it is run-only: a resumed run may switch it on, and the average
+            then starts at that step. Checkpoints hold it beside the parameters; validation,
+            inference and shipped models use it (the raw parameters' validation is logged as
+            ``val_raw_*``). Its decay ramps up as ``min(ema, (1 + n) / (10 + n))`` after n
+            updates, so that the random initial parameters are soon forgotten.
     """
 
     model: Any
@@ -183,6 +190,7 @@ class TrainConfig:
     keep_checkpoints: int = 3
     log_every: int = 10
     val_crops: int = 256
+    ema: float = 0.0
 
     @property
     def curriculum_steps(self) -> int:
@@ -207,6 +215,8 @@ class TrainConfig:
             raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
         if not isinstance(self.val_crops, int) or self.val_crops < 0:
             raise ValueError(f"val_crops must be a non-negative integer, got {self.val_crops!r}")
+        if isinstance(self.ema, bool) or not isinstance(self.ema, (int, float)) or not 0.0 <= self.ema < 1.0:
+            raise ValueError(f"ema must be a decay in [0, 1) (0 = off), got {self.ema!r}")
         for name in ("checkpoint_every", "keep_checkpoints", "log_every"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:

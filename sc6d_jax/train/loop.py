@@ -41,6 +41,7 @@ from sc6d_jax.checkpoint import (
     checkpoint_dirs,
     read_metrics_upto,
     read_checkpoint,
+    read_ema,
     read_meta,
     save_checkpoint,
 )
@@ -365,6 +366,7 @@ def train(
             o_t = jax.eval_shape(tx.init, p_t)
             params, opt_state, key_data, _ = read_checkpoint(latest, p_t, o_t)
             base_key = np.asarray(key_data)
+            ema = read_ema(latest, p_t) if cfg.ema else None
             if verbose and pidx == 0:
                 print(f"sc6d train: resuming {run_dir} from step {start} ({latest.name})", flush=True)
         else:
@@ -372,6 +374,9 @@ def train(
                 params = model_fns.load_weights(params, cfg.model, init_weights)
             params = _host_tree(params)
             opt_state = _host_tree(tx.init(params))
+            ema = None
+        if cfg.ema and ema is None:  # the average starts here (a fresh run, or switched on at a resume)
+            ema = (jax.tree.map(np.array, _host_tree(params)), start)
         if verbose and pidx == 0:
             print(f"sc6d train: config\n{cfg.to_json()}", end="", flush=True)
 
@@ -381,6 +386,8 @@ def train(
         data_sh = NamedSharding(mesh, PartitionSpec("data"))
         params = _replicate(params, rep)
         opt_state = _replicate(opt_state, rep)
+        if ema is not None:
+            ema = (_replicate(ema[0], rep), ema[1])
         base_key = _replicate(np.asarray(base_key), rep)
         step_fn = _cached_train_step(model_fns.loss_fn, cfg.replace(checkpoint_every=1, keep_checkpoints=1, log_every=1), z_range, mesh)
 
@@ -404,7 +411,7 @@ def train(
         if start >= cfg.steps:
             if verbose and pidx == 0:
                 print(f"sc6d train: {run_dir} is already complete ({start} steps)", flush=True)
-            return _host_tree(params)
+            return _host_tree(ema[0] if ema is not None else params)
         validator = None
         if cfg.val_crops and pidx == 0 and data_fns.stream is _default_data_fns().stream:
             from sc6d_jax.train.validate import Validator
@@ -415,7 +422,7 @@ def train(
             data_sh=data_sh, rep=rep, local_bs=local_bs, extra_meta=extra_meta,
             show_bar=progress and pidx == 0, writer=pidx == 0, validator=validator, time_offset=time_offset,
         )
-        return _loop(run, params, opt_state, base_key, start, latest)
+        return _loop(run, TrainState(params, opt_state, base_key, ema), start, latest)
     finally:
         close = getattr(stream, "close", None)
         if close is not None:
@@ -453,8 +460,31 @@ def _time_offset(lines: list[str]) -> tuple[float, float]:
     return 0.0, 0.0
 
 
-def _loop(run: _Run, params: Any, opt_state: Any, base_key: jax.Array, start: int, last_ckpt: Path | None) -> Any:
-    """Steps ``start .. cfg.steps`` of a run from the given state; returns the final parameters."""
+@dataclasses.dataclass
+class TrainState:
+    """The state a run carries from step to step: parameters, optimiser state, the run's base
+    key, and the moving average of the parameters with the step where it began (or None)."""
+
+    params: Any
+    opt_state: Any
+    base_key: jax.Array
+    ema: tuple[Any, int] | None = None
+
+
+@functools.partial(jax.jit, donate_argnums=0)
+def _ema_update(ema: Any, params: Any, decay: jax.Array) -> Any:
+    return jax.tree.map(lambda e, p: decay * e + (1.0 - decay) * p, ema, params)
+
+
+def _ema_decay(cfg: TrainConfig, updates_done: int) -> np.float32:
+    """``min(cfg.ema, (1 + n) / (10 + n))`` after n updates (TensorFlow's ramp)."""
+    return np.float32(min(cfg.ema, (1.0 + updates_done) / (10.0 + updates_done)))
+
+
+def _loop(run: _Run, state: TrainState, start: int, last_ckpt: Path | None) -> Any:
+    """Steps ``start .. cfg.steps`` of a run from the given state; returns the final parameters
+    (their moving average when the run keeps one)."""
+    params, opt_state, base_key, ema = state.params, state.opt_state, state.base_key, state.ema
     cfg, stream, step_fn, sched = run.cfg, run.stream, run.step_fn, run.sched
     run_dir, metrics_path, data_sh, rep = run.run_dir, run.metrics_path, run.data_sh, run.rep
     local_bs, extra_meta, show_bar, writer, validator = run.local_bs, run.extra_meta, run.show_bar, run.writer, run.validator
@@ -516,6 +546,8 @@ def _loop(run: _Run, params: Any, opt_state: Any, base_key: jax.Array, start: in
             batch = _global_batch(next(it), data_sh, local_bs, gbs)
             step_arr = jax.make_array_from_callback((), rep, lambda idx, s=s: np.asarray(s, np.int32))
             params, opt_state, m = step_fn(params, opt_state, batch, step_arr, base_key)
+            if ema is not None:
+                ema = (_ema_update(ema[0], params, _ema_decay(cfg, s - ema[1])), ema[1])
             drain()  # metrics of the previous step, while this one runs
             done = s + 1
             pending.append((done, m))
@@ -526,7 +558,7 @@ def _loop(run: _Run, params: Any, opt_state: Any, base_key: jax.Array, start: in
                 if writer:
                     last_ckpt = save_checkpoint(
                         run_dir, done, params, opt_state, base_key, cfg_dict,
-                        keep=cfg.keep_checkpoints, extra_meta=extra_meta,
+                        keep=cfg.keep_checkpoints, extra_meta=extra_meta, ema=ema,
                     )
                 else:
                     jax.block_until_ready(params)
@@ -534,7 +566,12 @@ def _loop(run: _Run, params: Any, opt_state: Any, base_key: jax.Array, start: in
                     # the step's record gets the validation fields (one line per logged step)
                     tv = time.perf_counter()
                     vrec = held.pop()
-                    vrec.update(validator(params))
+                    if ema is not None:  # what inference will use, and the raw parameters beside it
+                        vrec.update(validator(ema[0]))
+                        raw = validator(params)
+                        vrec.update({f"val_raw_{k[4:]}": raw[k] for k in _RAW_KEYS})
+                    else:
+                        vrec.update(validator(params))
                     val_s += time.perf_counter() - tv
                     vrec["val_s"] = time.perf_counter() - tv
                     write(vrec)
@@ -546,5 +583,9 @@ def _loop(run: _Run, params: Any, opt_state: Any, base_key: jax.Array, start: in
         bar.close()
         if mfile is not None:
             mfile.close()
-    return _host_tree(params)
+    return _host_tree(ema[0] if ema is not None else params)
+
+
+#: The validation fields also logged for the raw parameters of a run that keeps a moving average.
+_RAW_KEYS = ("val_ar", "val_rot_median_deg", "val_depth_rel_median")
 
