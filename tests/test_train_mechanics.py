@@ -489,6 +489,7 @@ def test_moving_average_of_parameters(tmp_path):
 
     cfg = standin_config(ema=0.9)
     assert [float(_ema_decay(cfg, n)) for n in (0, 1, 80, 10_000)] == pytest.approx([0.1, 2 / 11, 0.9, 0.9])
+    assert float(_ema_decay(cfg, 0, start=5)) == pytest.approx(0.9)  # switched on at a resume: no ramp
     plain = _run_standin(tmp_path / "plain" / "run", 12)
     run = tmp_path / "ema" / "run"
     returned = _run_standin(run, 12, ema=0.9, checkpoint_every=1, keep_checkpoints=20)
@@ -523,3 +524,10 @@ def test_moving_average_of_parameters(tmp_path):
     params, (ema, start) = _state(checkpoint_dirs(late)[-1][1], template)
     assert start == 5
     _assert_same_params(params, plain)
+    # no ramp when switched on late: decay 0.9 from the first update (the raw parameters of every
+    # step are those of the averaged run above, which the average never changed)
+    expect = jax.tree.map(np.asarray, states[5][0])
+    for s in range(6, 13):
+        expect = jax.tree.map(lambda e, p: 0.9 * e + 0.1 * p, expect, states[s][0])
+    for x, y in zip(jax.tree.leaves(ema), jax.tree.leaves(expect)):
+        np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-7)

@@ -174,8 +174,9 @@ class TrainConfig:
             into training, so it is run-only: a resumed run may switch it on, and the average
             then starts at that step. Checkpoints hold it beside the parameters; validation,
             inference and shipped models use it (the raw parameters' validation is logged as
-            ``val_raw_*``). Its decay ramps up as ``min(ema, (1 + n) / (10 + n))`` after n
-            updates, so that the random initial parameters are soon forgotten.
+            ``val_raw_*``). From a fresh start its decay ramps up as ``min(ema, (1 + n) / (10 +
+            n))`` after n updates, so that the random initial parameters are soon forgotten;
+            switched on at a resume, it is ``ema`` from the first update.
     """
 
     model: Any

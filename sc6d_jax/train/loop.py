@@ -476,8 +476,12 @@ def _ema_update(ema: Any, params: Any, decay: jax.Array) -> Any:
     return jax.tree.map(lambda e, p: decay * e + (1.0 - decay) * p, ema, params)
 
 
-def _ema_decay(cfg: TrainConfig, updates_done: int) -> np.float32:
-    """``min(cfg.ema, (1 + n) / (10 + n))`` after n updates (TensorFlow's ramp)."""
+def _ema_decay(cfg: TrainConfig, updates_done: int, start: int = 0) -> np.float32:
+    """The average's decay after ``updates_done`` updates: ``min(cfg.ema, (1 + n) / (10 + n))``
+    (TensorFlow's ramp, which forgets the random initial parameters) for an average begun at step
+    0; ``cfg.ema`` throughout for one switched on later (it begins from trained parameters)."""
+    if start > 0:
+        return np.float32(cfg.ema)
     return np.float32(min(cfg.ema, (1.0 + updates_done) / (10.0 + updates_done)))
 
 
@@ -547,7 +551,7 @@ def _loop(run: _Run, state: TrainState, start: int, last_ckpt: Path | None) -> A
             step_arr = jax.make_array_from_callback((), rep, lambda idx, s=s: np.asarray(s, np.int32))
             params, opt_state, m = step_fn(params, opt_state, batch, step_arr, base_key)
             if ema is not None:
-                ema = (_ema_update(ema[0], params, _ema_decay(cfg, s - ema[1])), ema[1])
+                ema = (_ema_update(ema[0], params, _ema_decay(cfg, s - ema[1], ema[1])), ema[1])
             drain()  # metrics of the previous step, while this one runs
             done = s + 1
             pending.append((done, m))
