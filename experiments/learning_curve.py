@@ -42,7 +42,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 COLUMNS = ("config", "step", "train_min", "crops_per_object", "val_ar", "val_rot_median_deg",
-           "val_depth_rel_median", "val_centre_median_px", "val_rot_under_10", "val_depth_under_2pct")
+           "val_depth_rel_median", "val_centre_median_px", "val_rot_under_10", "val_depth_under_2pct",
+           "val_raw_ar", "val_raw_rot_median_deg", "val_raw_depth_rel_median")
+#: Validation of the raw parameters of a run that keeps a moving average (``ema``; val_* is the average).
+RAW = ("val_raw_ar", "val_raw_rot_median_deg", "val_raw_depth_rel_median")
 
 
 def parse_config(text: str) -> tuple[str, list[str]]:
@@ -75,7 +78,7 @@ def curve_rows(name: str, run_dir: Path) -> list[dict]:
         rows.append({
             "config": name, "step": rec["step"], "train_min": rec["train_s"] / 60.0,
             "crops_per_object": rec["step"] * bs / n_obj,
-            **{k: rec[k] for k in COLUMNS if k.startswith("val_")},
+            **{k: rec.get(k) for k in COLUMNS if k.startswith("val_")},
         })
     return rows
 
@@ -92,9 +95,14 @@ def plot(rows: list[dict], path: Path) -> None:
     for name in names:
         rs = [r for r in rows if r["config"] == name]
         x = [r["train_min"] / 60 if hours else r["train_min"] for r in rs]
-        axes[0].plot(x, [r["val_ar"] for r in rs], "o-", label=name)
-        axes[1].plot(x, [r["val_rot_median_deg"] for r in rs], "o-", label=name)
-        axes[2].plot(x, [100 * r["val_depth_rel_median"] for r in rs], "o-", label=name)
+        lines = [axes[i].plot(x, [r[k] * (100 if i == 2 else 1) for r in rs], "o-", label=name)[0]
+                 for i, k in enumerate(("val_ar", "val_rot_median_deg", "val_depth_rel_median"))]
+        raw = [(xi, r) for xi, r in zip(x, rs) if r.get("val_raw_ar") is not None]
+        if raw:  # a moving average is validated as val_*; its raw parameters beside it, dashed
+            xr = [xi for xi, _ in raw]
+            for i, k in enumerate(RAW):
+                axes[i].plot(xr, [r[k] * (100 if i == 2 else 1) for _, r in raw], "x--", color=lines[i].get_color(),
+                             alpha=0.6, label=f"{name}: raw parameters (val_* = their moving average)")
     for ax, t in zip(axes, ("validation AR (MSSD, MSPD)", "median rotation error [deg]", "median depth error [%]")):
         ax.set_xlabel(f"training {'hours' if hours else 'minutes'} (2 CPU cores)")
         ax.set_title(t)
