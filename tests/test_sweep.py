@@ -190,17 +190,9 @@ def test_train_set_errors_name_the_problem(item, match, tmp_path):
 def test_every_budget_and_row_builds_a_valid_training_config(tmp_path):
     """What each ablation row would train, for every budget: the config parses, the rows' depth
     settings reach it, and budgets above tiny leave out the recipe's L1 on the decoded depth."""
-    import importlib.util
-
     from sc6d_jax.train.cli import build_config, build_parser
 
-    spec = importlib.util.spec_from_file_location("sweep_module", SWEEP)
-    sweep = importlib.util.module_from_spec(spec)
-    sys.modules["sweep_module"] = sweep  # dataclasses look their module up while the class is made
-    try:
-        spec.loader.exec_module(sweep)
-    finally:
-        del sys.modules["sweep_module"]
+    sweep = _sweep_module()
     for name, budget in sweep.BUDGETS.items():
         for row in sweep.ROWS:
             args = sweep._train_args(budget, tmp_path / "models", tmp_path / "run", 0, row.sets)
