@@ -24,6 +24,7 @@ import pytest
 
 from sc6d_jax.train import PRESETS, TrainConfig, preset, train
 from sc6d_jax.train.checkpoint import checkpoint_dirs, flatten_with_paths
+from sc6d_jax.train.config import config_differences
 
 #: An asymmetric built-in object (no discrete or continuous symmetry).
 ASYM_OBJ = 1
@@ -56,6 +57,9 @@ def test_presets_roundtrip_through_json():
     assert (paper_loss.z_norm, paper_loss.z_bins, paper_loss.z_loss, paper.model.gn_groups) == ("none", "linear", "focal", 32)
     long = preset("long")
     assert long.steps == 150_000 and long.model == cpu.model and long.loss == cpu.loss
+    assert (cpu.ema, long.ema) == (0.0, 0.9995)
+    # the moving average is run-only: a run carried without it resumes with it (and back)
+    assert config_differences(cpu.to_dict(), cpu.replace(ema=0.9995).to_dict()) == []
     with pytest.raises(ValueError, match="unknown preset 'huge'.*paper, cpu, long, tiny"):
         preset("huge")
     with pytest.raises(ValueError, match="unknown field"):
@@ -247,8 +251,6 @@ def test_cli_obj_ids_keep_the_presets_stream_settings(tmp_path):
 def test_a_config_saved_before_a_field_existed_still_matches():
     """Runs carried from leg to leg outlive code changes: a saved config that lacks a field
     compares as that field's default (new options default to the old behaviour)."""
-    from sc6d_jax.train.config import config_differences
-
     cfg = preset("long").to_dict()
     old = json.loads(json.dumps(cfg))
     del old["loss"]["teacher_gate"], old["model"]["so3_pe_freqs"]

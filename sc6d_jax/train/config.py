@@ -19,7 +19,8 @@ Presets (:func:`preset`):
   slim shared decoder, GroupNorm with 4 groups, Q = 5000 negatives shared by the batch, the
   focal-normalised depth code in 128 log bins; 18,000 steps: about an hour on two CPU cores.
   Its departures from the paper are listed, with their measured gains, in the preset's code.
-- ``long``: the ``cpu`` recipe over 150,000 steps (about 8 hours), run in legs (``sc6d carry``).
+- ``long``: the ``cpu`` recipe over 150,000 steps (about 8 hours), run in legs (``sc6d carry``),
+  with a moving average of the parameters (``ema=0.9995``) for validation and shipping.
 - ``tiny``: 48x48 crops, 4 residual blocks of width 16 and a slim decoder, batch 16,
   Q = 1000, 64 depth bins, 400 steps (about 30 s on two cores after a ~15 s compile): for
   tests and smoke runs.
@@ -412,6 +413,10 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
             checkpoint_every=500 if name == "cpu" else 2000,
             keep_checkpoints=3 if name == "cpu" else 2,
             log_every=20 if name == "cpu" else 50,
+            # the long run validates and ships a moving average of its parameters: switched on
+            # at step 38,000 of the built-in run, it scored validation AR 0.305 / 44 deg / 4.9 %
+            # at 40,000 against the raw parameters' 0.270 / 48 / 5.6 % (same run, same crops)
+            ema=0.0 if name == "cpu" else 0.9995,
         )
     elif name == "tiny":
         # The cpu recipe at a smaller size (GroupNorm with 4 groups, the focal-normalised log
