@@ -89,10 +89,18 @@ def ship(run_dir: str | os.PathLike, out_dir: str | os.PathLike, step: int | Non
          note: str = "") -> Path:
     """Write the parameters of a run's newest (or ``step``) checkpoint as a shipped model.
 
-    Only the parameters, the config and a note are kept (no optimiser state): a few MB.
+    Only the parameters (their moving average when the run keeps one: what validation scored),
+    the config and a note are kept (no optimiser state): a few MB.
     Written atomically; an existing ``out_dir`` is replaced.
     """
-    from sc6d_jax.checkpoint import CHECKPOINT_FORMAT, find_checkpoint, flatten_with_paths, load_checkpoint, read_meta
+    from sc6d_jax.checkpoint import (
+        CHECKPOINT_FORMAT,
+        find_checkpoint,
+        flatten_with_paths,
+        load_checkpoint,
+        read_ema,
+        read_meta,
+    )
 
     run_dir, out_dir = Path(run_dir), Path(out_dir)
     ckpt = find_checkpoint(run_dir, step)
@@ -110,7 +118,7 @@ def ship(run_dir: str | os.PathLike, out_dir: str | os.PathLike, step: int | Non
         "step": int(src_meta["step"]),
         "state_sha256": hashlib.sha256(data).hexdigest(),
         "config": src_meta["config"],
-        "shipped": {"note": note, "params_only": True},
+        "shipped": {"note": note, "params_only": True, "moving_average": read_ema(ckpt, params) is not None},
     }
     with atomic_directory(out_dir, overwrite=True) as tmp:
         (tmp / "state.npz").write_bytes(data)

@@ -146,6 +146,12 @@ def test_learning_curve_harness_writes_csv_and_plot(tmp_path, models):
     for x, y, z in zip(jax.tree.leaves(avg), jax.tree.leaves(ema), jax.tree.leaves(raw)):
         np.testing.assert_array_equal(x, y)
     assert any(not np.array_equal(x, z) for x, z in zip(jax.tree.leaves(avg), jax.tree.leaves(raw)))
+    from sc6d_jax import pretrained  # a shipped model of such a run holds the average
+
+    shipped = pretrained.ship(out / "b", tmp_path / "shipped")
+    assert json.loads((shipped / "meta.json").read_text())["shipped"]["moving_average"] is True
+    for x, y in zip(jax.tree.leaves(load_checkpoint(shipped)[0]), jax.tree.leaves(avg)):
+        np.testing.assert_array_equal(x, y)
     # finished runs are skipped on a rerun; a bad --config is one error line and status 2
     r2 = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert r2.returncode == 0 and "already complete" in r2.stdout
