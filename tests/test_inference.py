@@ -284,17 +284,22 @@ def test_ipdf_matching_equals_the_heads_dense_scores(monkeypatch):
     np.testing.assert_allclose(np.asarray(m.prob), np.asarray(prob), rtol=1e-4, atol=1e-7)
 
 
-def test_ipdf_model_trains_validates_and_predicts(tmp_path, models, scene):
-    """`sc6d train` of an Implicit-PDF model (real steps, validation at the checkpoint), then the
-    estimator scores the library with the head: valid poses, TTA, top-k; refinement refused."""
-    from sc6d_jax.cli import main as sc6d
+def test_ipdf_model_validates_and_predicts(tmp_path, models, scene):
+    """An Implicit-PDF model (a checkpoint of the tiny preset with rot_head=ipdf): the run's
+    validator scores it, and the estimator scores the library with the head: valid poses, TTA,
+    top-k; refinement refused. (The training step itself is the loss's, tested in test_losses.)"""
+    from sc6d_jax.model import init
+    from sc6d_jax.train import StreamSettings, preset, save_checkpoint
+    from sc6d_jax.train.validate import Validator
 
+    cfg = preset("tiny")
+    cfg = cfg.replace(model=dataclasses.replace(cfg.model, n_objects=2, rot_head="ipdf"),
+                      stream=StreamSettings(batch_size=16, obj_ids=(1, 3)), z_range=(20.0, 400.0))
+    params = init(jax.random.PRNGKey(0), cfg.model)
+    rec = Validator(cfg, models, n=8, lib_size=600, batch=8)(params)
+    assert 0.0 <= rec["val_ar"] <= 1.0 and 0.0 <= rec["val_rot_median_deg"] <= 180.0
     run = tmp_path / "ipdf"
-    assert sc6d(["train", "--models", str(models), "--out", str(run), "--preset", "tiny", "--obj-ids", "1,3",
-                 "--steps", "2", "--checkpoint-every", "2", "--set", "model.rot_head=ipdf", "--set", "val_crops=8",
-                 "--no-progress", "--quiet"]) == 0
-    rec = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()][-1]
-    assert rec["step"] == 2 and 0.0 <= rec["val_ar"] <= 1.0 and 0.0 <= rec["val_rot_median_deg"] <= 180.0
+    save_checkpoint(run, 1, params, {}, np.zeros(2, np.uint32), cfg.to_dict())
     est = Estimator.load(run, library_size=LIB, progress=False)
     assert est.library.emb.shape == (1, LIB, 9) and not (run / "library").exists()
     image, K, boxes, _ = scene
