@@ -237,13 +237,8 @@ def read_checkpoint(
     may hold ``jax.ShapeDtypeStruct`` leaves (from ``jax.eval_shape``).
     """
     ckpt_dir = Path(ckpt_dir)
-    meta, data = verify_state(ckpt_dir)
+    meta, arrays = _arrays(ckpt_dir)
     state = ckpt_dir / _STATE
-    try:
-        with np.load(io.BytesIO(data), allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, ValueError, OSError) as exc:
-        raise ValueError(f"checkpoint {state} is corrupt: {exc}") from exc
     params = unflatten_like(params_template, arrays, "params", str(state))
     opt_state = None
     if opt_state_template is not None:
@@ -253,23 +248,27 @@ def read_checkpoint(
     return params, opt_state, arrays["rng_key"], meta
 
 
-def _arrays(ckpt_dir: Path) -> dict[str, np.ndarray]:
-    _, data = verify_state(ckpt_dir)
+def _arrays(ckpt_dir: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """``(meta, the arrays of state.npz)`` of a verified checkpoint (ValueError naming it)."""
+    meta, data = verify_state(ckpt_dir)
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
+            return meta, {k: z[k] for k in z.files}
     except (zipfile.BadZipFile, ValueError, OSError) as exc:
         raise ValueError(f"checkpoint {ckpt_dir / _STATE} is corrupt: {exc}") from exc
+
+
+def _ema_from(arrays: dict[str, np.ndarray], params_template: Any, source: str) -> tuple[Any, int] | None:
+    if "ema_start" not in arrays:
+        return None
+    return unflatten_like(params_template, arrays, "ema", source), int(arrays["ema_start"])
 
 
 def read_ema(ckpt_dir: str | os.PathLike, params_template: Any) -> tuple[Any, int] | None:
     """``(average parameters, step where the average began)`` of a checkpoint that holds a moving
     average of its parameters (``TrainConfig.ema``), else None."""
     ckpt_dir = Path(ckpt_dir)
-    arrays = _arrays(ckpt_dir)
-    if "ema_start" not in arrays:
-        return None
-    return unflatten_like(params_template, arrays, "ema", str(ckpt_dir / _STATE)), int(arrays["ema_start"])
+    return _ema_from(_arrays(ckpt_dir)[1], params_template, str(ckpt_dir / _STATE))
 
 
 def find_checkpoint(run_dir: str | os.PathLike, step: int | None = None) -> Path:

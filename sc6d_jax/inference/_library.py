@@ -122,10 +122,11 @@ def embed_library(params: dict, mcfg: Any, R: np.ndarray, chunk: int = 32768, pr
 def ipdf_library_features(mcfg: Any, R: np.ndarray) -> np.ndarray:
     """The "library" of an Implicit-PDF head (``rot_head="ipdf"``): the rotations' encodings
     ``(1, N, D)`` (shared by all objects; the head scores each one with the crop at inference,
-    :func:`sc6d_jax.inference.ipdf_match_blocks`). Cheap to compute, so never cached."""
+    :func:`sc6d_jax.inference.ipdf_match_blocks`). Cheap to compute, so never cached; traceable
+    (the validator computes them under jit)."""
     from sc6d_jax.model import rotation_features
 
-    return np.asarray(rotation_features(jnp.asarray(R, jnp.float32), mcfg.ipdf_pe_freqs), np.float32)[None]
+    return rotation_features(jnp.asarray(R, jnp.float32), mcfg.ipdf_pe_freqs)[None]
 
 
 def load_or_build_library(
@@ -143,7 +144,7 @@ def load_or_build_library(
     grid = (n_views, n_inplane, int(seed))
     R = so3_grid(n_views, n_inplane, seed=seed)
     if mcfg.rot_head == "ipdf":
-        return RotationLibrary(R=R, emb=ipdf_library_features(mcfg, R), grid=grid, key="ipdf")
+        return RotationLibrary(R=R, emb=np.asarray(ipdf_library_features(mcfg, R), np.float32), grid=grid, key="ipdf")
     key = library_key(params, mcfg, grid)
     path = None if cache_dir is None else Path(cache_dir) / f"so3lib_{key}.npz"
     if path is not None and path.is_file():

@@ -264,3 +264,14 @@ def ipdf_match_blocks(head: dict, queries, feat_blocks, obj_idx, n_valid: int, k
             jnp.zeros((b,), jnp.float32))
     (v, i, m, z), _ = jax.lax.scan(body, init, jnp.arange(nb * ns, dtype=jnp.int32))
     return MatchResult(index=i, score=v, prob=jnp.exp(v - m[:, None]) / z[:, None])
+
+
+def match_library(head: dict, rot_head: str, queries, blocks, n_valid: int, k: int, tau, with_prob: bool,
+                  obj_idx) -> MatchResult:
+    """Top-k library rotations of each query with the model's rotation head: cosine matching of
+    per-object embedding blocks (``rot_head="so3"``, :func:`match_blocks`) or the Implicit-PDF
+    head over the rotations' encodings (``(1, nb, D, block)``, :func:`ipdf_match_blocks`, which
+    always gives probabilities). ``head``: the model's ``rot_head`` parameters."""
+    if rot_head == "ipdf":
+        return ipdf_match_blocks(head, queries, blocks[0], obj_idx, n_valid, k)
+    return _match_blocks(queries, blocks, n_valid, k, tau, with_prob, obj_idx)

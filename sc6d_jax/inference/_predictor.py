@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 
 from sc6d_jax.geometry import allocentric_to_egocentric, crop_transform, decode_translation, pe_map
-from sc6d_jax.inference._matching import _match_blocks, ipdf_match_blocks
+from sc6d_jax.inference._matching import match_library
 from sc6d_jax.inference._refine import refine_rotations
 
 _RZ90 = ((0.0, -1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0))
@@ -108,12 +108,9 @@ def predict_crops(
     K_in = jnp.concatenate([K] * n_copies, axis=0)
     dz = _z_decode(out, lcfg, z_range, K_in).astype(f32).reshape(n_copies, B)
     dxy = out["delta_xy"].astype(f32).reshape(n_copies, B, 2)
-    if mcfg.rot_head == "ipdf":  # the head scores every library rotation with the crop
-        if refine:
-            raise ValueError("refine needs the SO(3) encoder (rot_head='so3'); this model has an Implicit-PDF head")
-        m = ipdf_match_blocks(params["rot_head"], emb, lib_blocks[0], obj_in, n_valid, top_k)
-    else:
-        m = _match_blocks(emb, lib_blocks, n_valid, top_k, tau, True, obj_in)
+    if refine and mcfg.rot_head == "ipdf":
+        raise ValueError("refine needs the SO(3) encoder (rot_head='so3'); this model has an Implicit-PDF head")
+    m = match_library(params["rot_head"], mcfg.rot_head, emb, lib_blocks, n_valid, top_k, tau, True, obj_in)
     idx = m.index.reshape(n_copies, B, top_k)
     score = m.score.reshape(n_copies, B, top_k)
     prob = m.prob.reshape(n_copies, B, top_k)

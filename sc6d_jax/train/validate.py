@@ -93,17 +93,17 @@ class Validator:
         """The grid's embeddings for every object, as the estimator's matching blocks
         (O, nb, E, block): once per call, not per batch."""
         from sc6d_jax.inference._matching import auto_block, pad_library
-        from sc6d_jax.model import encode_rotations, rotation_features
+        from sc6d_jax.inference._library import ipdf_library_features
+        from sc6d_jax.model import encode_rotations
 
         if self.cfg.model.rot_head == "ipdf":  # the rotations' encodings, scored per crop by the head
-            feats = rotation_features(self.lib_R, self.cfg.model.ipdf_pe_freqs)[None]
-            return pad_library(feats, auto_block(self.batch, self.lib_R.shape[0]))[0]
+            return pad_library(ipdf_library_features(self.cfg.model, self.lib_R), auto_block(self.batch, self.lib_R.shape[0]))[0]
         lib = jnp.stack([encode_rotations(params, self.cfg.model, self.lib_R, o) for o in range(self.cfg.model.n_objects)])
         return pad_library(lib, auto_block(self.batch, self.lib_R.shape[0]))[0]
 
     def _predict(self, params: Any, lib, rgb, pe, K, center, side, obj_idx) -> dict[str, jax.Array]:
         from sc6d_jax.geometry import allocentric_to_egocentric, decode_translation
-        from sc6d_jax.inference._matching import _match_blocks, ipdf_match_blocks
+        from sc6d_jax.inference._matching import match_library
         from sc6d_jax.model import apply, decode_delta_z
 
         cfg = self.cfg
@@ -111,11 +111,9 @@ class Validator:
         out = apply(params, mcfg, rgb, pe if mcfg.use_pe else None, obj_idx)
         # the estimator's per-object matching: each object's grid scanned once with its own
         # crops, in blocks (gathering a (B, N, E) library per batch took ~0.5 GB at 60k rotations)
-        n = self.lib_R.shape[0]
-        if mcfg.rot_head == "ipdf":
-            best = ipdf_match_blocks(params["rot_head"], out["rot_emb"], lib[0], obj_idx, n, 1).index[:, 0]
-        else:
-            best = _match_blocks(out["rot_emb"], lib, n, 1, 0.1, False, obj_idx).index[:, 0]
+        m = match_library(params["rot_head"], mcfg.rot_head, out["rot_emb"], lib, self.lib_R.shape[0], 1, 0.1, False,
+                          obj_idx)
+        best = m.index[:, 0]
         R_allo = self.lib_R[best]
         dz = decode_delta_z(out, cfg.loss, cfg.z_range, K)
         t = decode_translation(out["delta_xy"], dz, K, center, side, mcfg.crop_size)
