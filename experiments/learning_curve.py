@@ -41,11 +41,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from sc6d_jax.train.loop import RAW_LOGGED as RAW  # noqa: E402  (validation of a moving average's raw parameters)
+
 COLUMNS = ("config", "step", "train_min", "crops_per_object", "val_ar", "val_rot_median_deg",
-           "val_depth_rel_median", "val_centre_median_px", "val_rot_under_10", "val_depth_under_2pct",
-           "val_raw_ar", "val_raw_rot_median_deg", "val_raw_depth_rel_median")
-#: Validation of the raw parameters of a run that keeps a moving average (``ema``; val_* is the average).
-RAW = ("val_raw_ar", "val_raw_rot_median_deg", "val_raw_depth_rel_median")
+           "val_depth_rel_median", "val_centre_median_px", "val_rot_under_10", "val_depth_under_2pct", *RAW)
 
 
 def parse_config(text: str) -> tuple[str, list[str]]:

@@ -573,7 +573,7 @@ def _loop(run: _Run, state: TrainState, start: int, last_ckpt: Path | None) -> A
                     if ema is not None:  # what inference will use, and the raw parameters beside it
                         vrec.update(validator(ema[0]))
                         raw = validator(params)
-                        vrec.update({f"val_raw_{k[4:]}": raw[k] for k in _RAW_KEYS})
+                        vrec.update({name: raw[k] for name, k in zip(RAW_LOGGED, RAW_KEYS)})
                     else:
                         vrec.update(validator(params))
                     val_s += time.perf_counter() - tv
@@ -590,6 +590,8 @@ def _loop(run: _Run, state: TrainState, start: int, last_ckpt: Path | None) -> A
     return _host_tree(ema[0] if ema is not None else params)
 
 
-#: The validation fields also logged for the raw parameters of a run that keeps a moving average.
-_RAW_KEYS = ("val_ar", "val_rot_median_deg", "val_depth_rel_median")
+#: The validation fields also logged for the raw parameters of a run that keeps a moving average,
+#: under ``val_raw_*`` (:data:`RAW_LOGGED`).
+RAW_KEYS = ("val_ar", "val_rot_median_deg", "val_depth_rel_median")
+RAW_LOGGED = tuple(f"val_raw_{k[4:]}" for k in RAW_KEYS)
 
