@@ -1,7 +1,7 @@
 """What a checkpoint of a long run would score if the run ended now: a short cool-down probe.
 
     python experiments/anneal_probe.py --run runs/long --models runs/objects/models --out runs/probe-30k \\
-        [--step 30000] [--steps 2000] [--workers 1]
+        [--step 30000] [--steps 2000] [--workers 1] [--set loss.turn_negatives=true ...]
 
 A long cosine run spends most of its steps at a high learning rate, where the validation curve
 is noisy and flat-looking while the model still improves underneath: most of the gain comes in
@@ -46,8 +46,11 @@ def run_record(run: Path, step: int) -> dict | None:
     return None
 
 
-def setup(run: Path, step: int | None, steps: int, val_crops: int | None = None) -> tuple[int, object, object]:
-    """(step, parameters of the checkpoint, the probe's TrainConfig) for ``run`` at ``step``."""
+def setup(run: Path, step: int | None, steps: int, val_crops: int | None = None,
+          sets: list[str] | None = None) -> tuple[int, object, object]:
+    """(step, parameters of the checkpoint, the probe's TrainConfig) for ``run`` at ``step``;
+    ``sets``: ``sc6d train --set`` overrides of the probe's loss, stream or optimiser (a same-start
+    A/B of a recipe change); ValueError for one that would change the model."""
     from sc6d_jax.checkpoint import find_checkpoint, load_checkpoint, read_meta
     from sc6d_jax.train.loop import make_optimizer
 
@@ -59,16 +62,23 @@ def setup(run: Path, step: int | None, steps: int, val_crops: int | None = None)
     pcfg = cfg.replace(optim=optim, stream=stream, steps=steps, checkpoint_every=steps, keep_checkpoints=1,
                        preset=f"anneal-probe:{cfg.preset}@{step}", ema=0.0,
                        val_crops=cfg.val_crops if val_crops is None else val_crops)
+    if sets:
+        from sc6d_jax.train.cli import apply_overrides
+
+        changed = apply_overrides(pcfg, list(sets))
+        if changed.model != pcfg.model:
+            raise ValueError(f"--set {' '.join(sets)}: a probe cannot change the model (the checkpoint's parameters fix it)")
+        pcfg = changed
     return step, params, pcfg
 
 
 def probe(run: Path, models: Path, out: Path, step: int | None, steps: int, workers: int = 1,
-          val_crops: int | None = None) -> tuple[int, dict]:
+          val_crops: int | None = None, sets: list[str] | None = None) -> tuple[int, dict]:
     """Train the cool-down from ``run``'s checkpoint at ``step`` into ``out``; (step, final record)."""
     from sc6d_jax.train import train
     from sc6d_jax.train.loop import ModelFns, _default_model_fns
 
-    step, params, pcfg = setup(run, step, steps, val_crops)
+    step, params, pcfg = setup(run, step, steps, val_crops, sets)
     fns = ModelFns(lambda key, mcfg: params, _default_model_fns().loss_fn, None)
     train(pcfg, models, out, resume=(out / "checkpoints").is_dir(), workers=workers, model_fns=fns,
           progress=sys.stderr.isatty())
@@ -84,6 +94,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=2000, help="cool-down steps (default 2000)")
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--val-crops", type=int, default=None, help="validation crops (the run's by default)")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                   help="override the probe's loss / stream / optim settings (as sc6d train --set; repeatable): "
+                        "probes with and without a change, from the same checkpoint, are a same-start A/B")
     a = p.parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "egl")
     if not (a.run / "checkpoints").is_dir():
@@ -93,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
         print("anneal_probe: error: --steps must be >= 10", file=sys.stderr)
         return 2
     try:
-        step, rec = probe(a.run, a.models, a.out, a.step, a.steps, a.workers, a.val_crops)
+        step, rec = probe(a.run, a.models, a.out, a.step, a.steps, a.workers, a.val_crops, a.sets)
     except (FileNotFoundError, ValueError) as exc:
         print(f"anneal_probe: error: {exc}", file=sys.stderr)
         return 2

@@ -202,3 +202,9 @@ def test_anneal_probe_cools_a_checkpoint_down_and_validates(runs, tmp_path, caps
         np.testing.assert_array_equal(x, y)
     assert mod.main(["--run", str(tmp_path), "--models", str(models), "--out", str(out)]) == 2
     assert "not a training run" in capsys.readouterr().err
+    # --set changes the probe's recipe, never its model
+    _, _, tcfg = mod.setup(root / "a", 3, 10, sets=["loss.turn_negatives=true", "loss.tau=0.2"])
+    assert tcfg.loss.turn_negatives and tcfg.loss.tau == 0.2 and tcfg.model == pcfg.model
+    assert mod.main(["--run", str(root / "a"), "--models", str(models), "--out", str(tmp_path / "w"),
+                     "--set", "model.width=8"]) == 2
+    assert "cannot change the model" in capsys.readouterr().err and not (tmp_path / "w").exists()

@@ -279,3 +279,34 @@ def test_cpu_recipe_loss_is_finite_and_uses_K(grad_fn):
         LossConfig(z_norm="metric")
     with pytest.raises(ValueError, match="local_min_deg"):
         LossConfig(local_min_deg=40.0, local_max_deg=30.0)
+
+
+def test_turn_negatives_are_the_ground_truth_turned_about_the_object_axes(params):
+    from sc6d_jax.geometry import geodesic_angle
+    from sc6d_jax.model import apply, rotation_logits
+    from sc6d_jax.model._losses import AXIS_TURNS
+
+    T = np.asarray(AXIS_TURNS, np.float64)
+    assert T.shape == (9, 3, 3)
+    np.testing.assert_allclose(T @ np.swapaxes(T, -1, -2), np.broadcast_to(np.eye(3), T.shape), atol=1e-6)
+    np.testing.assert_allclose(np.linalg.det(T), 1.0, atol=1e-6)
+    ang = np.degrees(np.asarray(geodesic_angle(jnp.asarray(T), jnp.broadcast_to(jnp.eye(3), T.shape))))
+    np.testing.assert_allclose(np.sort(ang), [90] * 6 + [180] * 3, atol=1e-3)
+    for k, axis in enumerate(np.repeat(np.eye(3), 3, axis=0)):  # each turn keeps its own axis fixed
+        np.testing.assert_allclose(T[k] @ axis, axis, atol=1e-6)
+    assert len({tuple(np.round(t, 6).ravel()) for t in T}) == 9
+
+    batch = _batch(CFG, b=3)
+    R = jnp.asarray(batch["R_allo"])
+    lcfg = LossConfig(n_negatives=6, rebase_negatives=False, n_local_negatives=2, turn_negatives=True)
+    out = apply(params, CFG, batch["rgb"], batch["pe"], batch["obj_idx"])
+    oi = jnp.asarray(batch["obj_idx"])
+    logits = candidate_logits(params, CFG, lcfg, out, R, oi, jax.random.key(2))
+    assert logits.shape == (3, 1 + 6 + 2 + 9)
+    want = rotation_logits(params, CFG, out, R[:, None] @ jnp.asarray(T, jnp.float32), oi, lcfg.tau)
+    np.testing.assert_allclose(np.asarray(logits[:, -9:]), np.asarray(want), rtol=1e-5, atol=1e-5)
+    # the rest is what the loss was without them (same key)
+    base = candidate_logits(params, CFG, dataclasses.replace(lcfg, turn_negatives=False), out, R, oi, jax.random.key(2))
+    np.testing.assert_allclose(np.asarray(logits[:, :-9]), np.asarray(base), rtol=1e-6)
+    with pytest.raises(ValueError, match="turn_negatives"):
+        LossConfig(turn_negatives="yes")

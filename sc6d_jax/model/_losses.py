@@ -12,6 +12,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from sc6d_jax.geometry import rebase_negatives, sample_rotation_deltas, z_bin_centers, z_bin_label
 
@@ -63,6 +64,12 @@ class LossConfig:
       random axis and an angle uniform in [local_min_deg, local_max_deg]): hard negatives
       that teach fine rotation once the coarse shape is learnt (the shared set is ~14 degrees
       apart at Q = 5000). 0 = off (paper).
+    - turn_negatives: 9 more negatives per sample, its ground truth turned by a quarter, half
+      and three-quarter turn about each of the object's own axes (``AXIS_TURNS``): the poses a
+      nearly symmetric object is confused with (a mug upside down, a dumbbell turned about its
+      bar), which random negatives almost never hit. No symmetry labels: for an exactly
+      symmetric object the turned pose looks the same and only costs a constant floor of the
+      loss (False = off, paper).
     - per_sample_negatives: draw an independent random roll per sample (vmapped over the
       batch) instead of one set of deltas shared by the batch.
     - w_rot 1, w_xy 10, w_z 1, w_mask 1: loss weights.
@@ -99,6 +106,7 @@ class LossConfig:
     local_max_deg: float = 30.0
     w_dense: float = 0.0
     teacher_gate: bool = False
+    turn_negatives: bool = False
 
     def __post_init__(self) -> None:
         if self.z_mode not in Z_MODES:
@@ -117,6 +125,8 @@ class LossConfig:
             raise ValueError(
                 f"need 0 <= local_min_deg <= local_max_deg <= 180, got {self.local_min_deg}, {self.local_max_deg}"
             )
+        if not isinstance(self.turn_negatives, bool):
+            raise ValueError(f"turn_negatives must be true or false, got {self.turn_negatives!r}")
         if self.mask_downsample not in MASK_DOWNSAMPLE:
             raise ValueError(f"mask_downsample must be one of {MASK_DOWNSAMPLE}, got {self.mask_downsample!r}")
         if not self.tau > 0:
@@ -244,6 +254,23 @@ def local_rotation_deltas(key: jax.Array, shape: tuple[int, ...], min_deg: float
     return jnp.eye(3) + s * Kx + (1.0 - c) * (Kx @ Kx)
 
 
+#: The quarter and half turns about the object's own x, y and z axes (9 rotations): R_gt @ TURN is
+#: the ground truth turned in the object's frame, the pose a nearly symmetric object is confused with.
+def _axis_turns() -> np.ndarray:
+    out = []
+    for axis in range(3):
+        for quarter in (1, 2, 3):
+            c, s = [(0, 1), (-1, 0), (0, -1)][quarter - 1]
+            R = np.eye(3)
+            i, j = [(1, 2), (2, 0), (0, 1)][axis]
+            R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
+            out.append(R)
+    return np.stack(out).astype(np.float32)
+
+
+AXIS_TURNS = _axis_turns()
+
+
 def candidate_logits(
     params: dict,
     mcfg: ModelConfig,
@@ -253,7 +280,23 @@ def candidate_logits(
     obj_idx: jax.Array,
     key: jax.Array,
 ) -> jax.Array:
-    """(B, Q+1) rotation logits with the ground truth at index 0 (negatives per lcfg)."""
+    """(B, Q+1[+M][+9]) rotation logits with the ground truth at index 0 (negatives per lcfg)."""
+    logits = _base_logits(params, mcfg, lcfg, out, R_gt, obj_idx, key)
+    if not lcfg.turn_negatives:
+        return logits
+    turned = R_gt[:, None] @ jnp.asarray(AXIS_TURNS)  # (B,9,3,3)
+    return jnp.concatenate([logits, rotation_logits(params, mcfg, out, turned, obj_idx, lcfg.tau)], axis=1)
+
+
+def _base_logits(
+    params: dict,
+    mcfg: ModelConfig,
+    lcfg: LossConfig,
+    out: dict,
+    R_gt: jax.Array,
+    obj_idx: jax.Array,
+    key: jax.Array,
+) -> jax.Array:
     b = R_gt.shape[0]
     q = lcfg.n_negatives
     if lcfg.per_sample_negatives:
