@@ -258,7 +258,7 @@ def test_local_negatives_lie_in_their_angle_band(params):
     lcfg = LossConfig(n_negatives=6, rebase_negatives=False, n_local_negatives=5)
     from sc6d_jax.model import apply
 
-    out = apply(params, CFG, batch["rgb"], batch["pe"], batch["obj_idx"])
+    out = jax.jit(apply, static_argnums=1)(params, CFG, batch["rgb"], batch["pe"], batch["obj_idx"])  # eager: 4x slower
     logits = candidate_logits(params, CFG, lcfg, out, jnp.asarray(batch["R_allo"]), jnp.asarray(batch["obj_idx"]), jax.random.key(2))
     assert logits.shape == (2, 1 + 6 + 5)
 
@@ -299,14 +299,15 @@ def test_turn_negatives_are_the_ground_truth_turned_about_the_object_axes(params
     batch = _batch(CFG, b=3)
     R = jnp.asarray(batch["R_allo"])
     lcfg = LossConfig(n_negatives=6, rebase_negatives=False, n_local_negatives=2, turn_negatives=True)
-    out = apply(params, CFG, batch["rgb"], batch["pe"], batch["obj_idx"])
+    out = jax.jit(apply, static_argnums=1)(params, CFG, batch["rgb"], batch["pe"], batch["obj_idx"])  # eager: 4x slower
     oi = jnp.asarray(batch["obj_idx"])
-    logits = candidate_logits(params, CFG, lcfg, out, R, oi, jax.random.key(2))
+    cand = jax.jit(candidate_logits, static_argnums=(1, 2))
+    logits = cand(params, CFG, lcfg, out, R, oi, jax.random.key(2))
     assert logits.shape == (3, 1 + 6 + 2 + 9)
     want = rotation_logits(params, CFG, out, R[:, None] @ jnp.asarray(T, jnp.float32), oi, lcfg.tau)
     np.testing.assert_allclose(np.asarray(logits[:, -9:]), np.asarray(want), rtol=1e-5, atol=1e-5)
     # the rest is what the loss was without them (same key)
-    base = candidate_logits(params, CFG, dataclasses.replace(lcfg, turn_negatives=False), out, R, oi, jax.random.key(2))
+    base = cand(params, CFG, dataclasses.replace(lcfg, turn_negatives=False), out, R, oi, jax.random.key(2))
     np.testing.assert_allclose(np.asarray(logits[:, :-9]), np.asarray(base), rtol=1e-6)
     with pytest.raises(ValueError, match="turn_negatives"):
         LossConfig(turn_negatives="yes")
