@@ -281,22 +281,6 @@ def candidate_logits(
     key: jax.Array,
 ) -> jax.Array:
     """(B, Q+1[+M][+9]) rotation logits with the ground truth at index 0 (negatives per lcfg)."""
-    logits = _base_logits(params, mcfg, lcfg, out, R_gt, obj_idx, key)
-    if not lcfg.turn_negatives:
-        return logits
-    turned = R_gt[:, None] @ jnp.asarray(AXIS_TURNS)  # (B,9,3,3)
-    return jnp.concatenate([logits, rotation_logits(params, mcfg, out, turned, obj_idx, lcfg.tau)], axis=1)
-
-
-def _base_logits(
-    params: dict,
-    mcfg: ModelConfig,
-    lcfg: LossConfig,
-    out: dict,
-    R_gt: jax.Array,
-    obj_idx: jax.Array,
-    key: jax.Array,
-) -> jax.Array:
     b = R_gt.shape[0]
     q = lcfg.n_negatives
     if lcfg.per_sample_negatives:
@@ -305,19 +289,22 @@ def _base_logits(
             cands = jax.vmap(rebase_negatives)(deltas, R_gt)
         else:
             cands = jnp.concatenate([R_gt[:, None], deltas], axis=1)
-        return rotation_logits(params, mcfg, out, cands, obj_idx, lcfg.tau)
-    deltas = sample_rotation_deltas(key, q)  # (Q,3,3), shared by the batch
-    if lcfg.rebase_negatives:
-        cands = rebase_negatives(deltas, R_gt)  # (B,Q+1,3,3)
-        return rotation_logits(params, mcfg, out, cands, obj_idx, lcfg.tau)
-    pos = rotation_logits(params, mcfg, out, R_gt[:, None], obj_idx, lcfg.tau)  # (B,1)
-    neg = rotation_logits(params, mcfg, out, deltas, obj_idx, lcfg.tau)  # (B,Q)
-    parts = [pos, neg]
-    if lcfg.n_local_negatives:
-        m = lcfg.n_local_negatives
-        loc = local_rotation_deltas(jax.random.fold_in(key, 1), (b, m), lcfg.local_min_deg, lcfg.local_max_deg)
-        parts.append(rotation_logits(params, mcfg, out, R_gt[:, None] @ loc, obj_idx, lcfg.tau))  # (B,M)
-    return jnp.concatenate(parts, axis=1)
+        parts = [rotation_logits(params, mcfg, out, cands, obj_idx, lcfg.tau)]
+    elif lcfg.rebase_negatives:
+        cands = rebase_negatives(sample_rotation_deltas(key, q), R_gt)  # (B,Q+1,3,3)
+        parts = [rotation_logits(params, mcfg, out, cands, obj_idx, lcfg.tau)]
+    else:
+        deltas = sample_rotation_deltas(key, q)  # (Q,3,3), shared by the batch
+        pos = rotation_logits(params, mcfg, out, R_gt[:, None], obj_idx, lcfg.tau)  # (B,1)
+        parts = [pos, rotation_logits(params, mcfg, out, deltas, obj_idx, lcfg.tau)]  # + (B,Q)
+        if lcfg.n_local_negatives:
+            m = lcfg.n_local_negatives
+            loc = local_rotation_deltas(jax.random.fold_in(key, 1), (b, m), lcfg.local_min_deg, lcfg.local_max_deg)
+            parts.append(rotation_logits(params, mcfg, out, R_gt[:, None] @ loc, obj_idx, lcfg.tau))  # (B,M)
+    if lcfg.turn_negatives:
+        turned = R_gt[:, None] @ jnp.asarray(AXIS_TURNS)  # (B,9,3,3)
+        parts.append(rotation_logits(params, mcfg, out, turned, obj_idx, lcfg.tau))
+    return jnp.concatenate(parts, axis=1) if len(parts) > 1 else parts[0]
 
 
 def _check_batch(mcfg: ModelConfig, batch: dict) -> None:
