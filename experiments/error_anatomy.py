@@ -48,18 +48,14 @@ COLUMNS = ("difficulty", "obj_id", "n", "rot_median_deg", "rot_over_90", "depth_
 def error_axis(R_est: np.ndarray, R_gt: np.ndarray, syms: np.ndarray | None = None) -> tuple[float, np.ndarray]:
     """(angle in degrees, unit axis up to sign, as absolute values) of R_est^T R_gt S, the error
     rotation in the object's frame, for the symmetry S (N,3,3; None = identity only) that makes
-    it smallest (near 180 degrees the axis is read from the diagonal)."""
+    it smallest."""
+    from sc6d_jax.geometry import matrix_to_axis_angle
+
     R_est, R_gt = np.asarray(R_est, np.float64), np.asarray(R_gt, np.float64)
     cands = [R_est.T @ R_gt @ S for S in (np.eye(3)[None] if syms is None else np.asarray(syms, np.float64))]
-    Rd = max(cands, key=np.trace)  # the largest trace is the smallest angle
-    ang = float(np.degrees(np.arccos(np.clip((np.trace(Rd) - 1.0) / 2.0, -1.0, 1.0))))
-    w = np.array([Rd[2, 1] - Rd[1, 2], Rd[0, 2] - Rd[2, 0], Rd[1, 0] - Rd[0, 1]])
-    if np.linalg.norm(w) < 1e-3:  # 0 or 180 degrees: sin vanishes; R = 2 a a^T - I at 180
-        ax = np.sqrt(np.clip((np.diag(Rd) + 1.0) / 2.0, 0.0, 1.0))
-    else:
-        ax = np.abs(w)
-    n = np.linalg.norm(ax)
-    return ang, ax / n if n > 0 else ax
+    aa = np.asarray(matrix_to_axis_angle(max(cands, key=np.trace)), np.float64)  # largest trace: smallest angle
+    ang = float(np.linalg.norm(aa))
+    return float(np.degrees(ang)), np.abs(aa) / ang if ang > 0 else np.zeros(3)
 
 
 def anatomy_rows(name: str, pred: dict, data: dict, syms: dict) -> list[dict]:
@@ -122,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
 
     def body() -> int:
-        from sc6d_jax.checkpoint import load_checkpoint
+        from sc6d_jax.checkpoint import find_checkpoint, load_checkpoint, read_meta
         from sc6d_jax.pretrained import check_run
         from sc6d_jax._io import atomic_write_text
         from sc6d_jax.train.validate import Validator
@@ -131,13 +127,15 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError("--crops and --lib must be positive")
         if not (a.models / "models_info.json").is_file():
             raise FileNotFoundError(f"{a.models}: no models_info.json (not a BOP models/ folder)")
-        params, cfg = load_checkpoint(check_run(a.run), a.step, raw=a.raw)
+        run = check_run(a.run)
+        step = int(read_meta(find_checkpoint(run, a.step))["step"])
+        params, cfg = load_checkpoint(run, step, raw=a.raw)
         rows, overall = [], {}
         for name, ov in DIFFICULTIES.items():
             v = Validator(cfg, a.models, n=a.crops, lib_size=a.lib, stream_overrides=ov)
             pred = v.predict(params)
             rows += anatomy_rows(name, pred, v.data, v.syms)
-            overall[name] = v(params)
+            overall[name] = v.score(pred)
             o = overall[name]
             print(f"{name:>13}: AR {o['val_ar']:.3f}, rotation {o['val_rot_median_deg']:.1f} deg, "
                   f"depth {100 * o['val_depth_rel_median']:.2f} %", flush=True)
@@ -146,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
         a.out.mkdir(parents=True, exist_ok=True)
         atomic_write_text(a.out / "anatomy.csv", "\n".join(lines) + "\n")
         atomic_write_text(a.out / "anatomy.json", json.dumps(
-            {"run": str(a.run), "step": a.step, "raw": a.raw, "overall": overall, "objects": rows}, indent=1))
+            {"run": str(a.run), "step": step, "raw": a.raw, "overall": overall, "objects": rows}, indent=1))
         figure(rows, a.out / "anatomy.png")
         print(f"{'difficulty':>13} obj  rot(deg) >90deg depth(%) bias(%)  axis of >90-degree errors (object frame)")
         for r in rows:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -79,7 +80,7 @@ def test_command_on_a_checkpoint_writes_tables_and_a_figure(models, tmp_path):
     run = tmp_path / "run"
     save_checkpoint(run, 5, init(jax.random.PRNGKey(0), cfg.model), {}, np.zeros(2, np.uint32), cfg.to_dict(),
                     extra_meta={"models_dir": None})
-    (run / "config.json").write_text(__import__("json").dumps(cfg.to_dict()))
+    (run / "config.json").write_text(json.dumps(cfg.to_dict()))
     out = tmp_path / "anatomy"
     res = subprocess.run([sys.executable, str(REPO / "experiments" / "error_anatomy.py"), "--run", str(run),
                           "--models", str(models), "--out", str(out), "--crops", "12", "--lib", "600"],
@@ -94,6 +95,7 @@ def test_command_on_a_checkpoint_writes_tables_and_a_figure(models, tmp_path):
     assert all(0.0 <= float(r["rot_median_deg"]) <= 180.0 for r in rows)
     assert (out / "anatomy.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "plain: AR" in res.stdout
+    assert json.loads((out / "anatomy.json").read_text())["step"] == 5  # the checkpoint's, not None
 
     bad = subprocess.run([sys.executable, str(REPO / "experiments" / "error_anatomy.py"), "--run", str(run),
                           "--models", str(tmp_path), "--out", str(tmp_path / "x")], capture_output=True, text=True, timeout=120)

@@ -133,10 +133,13 @@ class Validator:
 
     def __call__(self, params: Any) -> dict[str, float]:
         """The breakdown of ``params`` on the validation crops, as ``val_*`` floats."""
+        return self.score(self.predict(params))
+
+    def score(self, pred: dict[str, np.ndarray]) -> dict[str, float]:
+        """The breakdown of estimates ``pred`` (as :meth:`predict` returns them), as ``val_*`` floats."""
         from sc6d_jax.metrics import MSPD_THRESHOLDS, MSSD_THRESHOLDS, mspd, mssd
         from sc6d_jax.metrics._breakdown import pose_errors, summarize_breakdown
 
-        pred = self.predict(params)
         d = self.data
         rows = []
         hit_mssd, hit_mspd = [], []
