@@ -12,9 +12,16 @@ import math
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from sc6d_jax.geometry import rebase_negatives, sample_rotation_deltas, z_bin_centers, z_bin_label
+from sc6d_jax.geometry import (
+    rebase_negatives,
+    rot_x,
+    rot_y,
+    rot_z,
+    sample_rotation_deltas,
+    z_bin_centers,
+    z_bin_label,
+)
 
 from ._config import ModelConfig
 from ._network import apply
@@ -65,7 +72,7 @@ class LossConfig:
       that teach fine rotation once the coarse shape is learnt (the shared set is ~14 degrees
       apart at Q = 5000). 0 = off (paper).
     - turn_negatives: 9 more negatives per sample, its ground truth turned by a quarter, half
-      and three-quarter turn about each of the object's own axes (``AXIS_TURNS``): the poses a
+      and three-quarter turn about each of the object's own axes (:func:`axis_turns`): the poses a
       nearly symmetric object is confused with (a mug upside down, a dumbbell turned about its
       bar), which random negatives almost never hit. No symmetry labels: for an exactly
       symmetric object the turned pose looks the same and only costs a constant floor of the
@@ -254,21 +261,12 @@ def local_rotation_deltas(key: jax.Array, shape: tuple[int, ...], min_deg: float
     return jnp.eye(3) + s * Kx + (1.0 - c) * (Kx @ Kx)
 
 
-#: The quarter and half turns about the object's own x, y and z axes (9 rotations): R_gt @ TURN is
-#: the ground truth turned in the object's frame, the pose a nearly symmetric object is confused with.
-def _axis_turns() -> np.ndarray:
-    out = []
-    for axis in range(3):
-        for quarter in (1, 2, 3):
-            c, s = [(0, 1), (-1, 0), (0, -1)][quarter - 1]
-            R = np.eye(3)
-            i, j = [(1, 2), (2, 0), (0, 1)][axis]
-            R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
-            out.append(R)
-    return np.stack(out).astype(np.float32)
-
-
-AXIS_TURNS = _axis_turns()
+def axis_turns() -> jax.Array:
+    """(9, 3, 3): the quarter, half and three-quarter turns about the object's own x, y and z
+    axes. R_gt @ turn is the ground truth turned in the object's frame, the pose a nearly
+    symmetric object is confused with."""
+    quarters = 0.5 * jnp.pi * jnp.arange(1.0, 4.0)
+    return jnp.concatenate([rot_x(quarters), rot_y(quarters), rot_z(quarters)])
 
 
 def candidate_logits(
@@ -302,7 +300,7 @@ def candidate_logits(
             loc = local_rotation_deltas(jax.random.fold_in(key, 1), (b, m), lcfg.local_min_deg, lcfg.local_max_deg)
             parts.append(rotation_logits(params, mcfg, out, R_gt[:, None] @ loc, obj_idx, lcfg.tau))  # (B,M)
     if lcfg.turn_negatives:
-        turned = R_gt[:, None] @ jnp.asarray(AXIS_TURNS)  # (B,9,3,3)
+        turned = R_gt[:, None] @ axis_turns()  # (B,9,3,3)
         parts.append(rotation_logits(params, mcfg, out, turned, obj_idx, lcfg.tau))
     return jnp.concatenate(parts, axis=1) if len(parts) > 1 else parts[0]
 
