@@ -4,12 +4,15 @@
         [--step 64000] [--crops 512] [--lib 60000] [--raw]
 
 Scores one checkpoint (its moving average unless ``--raw``) on the run's own validation crops
-(the same seed: the first ``val_crops`` of them are the ones the run validates on) at three
-difficulties that differ only in what surrounds the object:
+(the same seed: the first ``val_crops`` of them are the ones the run validates on) at four
+settings that differ only in what surrounds the object and how the crop is cut:
 
 - ``full``: the run's stream (textured backgrounds, occluders with the run's probability);
 - ``no-occlusion``: the same, without occluders;
-- ``plain``: plain one-colour backgrounds and no occluders.
+- ``plain``: plain one-colour backgrounds and no occluders;
+- ``exact-box``: the run's stream, but each crop cut from the object's exact (amodal) box, as
+  from a perfect detector: no box jitter, so the object fills the crop as it does at inference
+  with ground-truth boxes of unoccluded objects (the other three keep the training jitter).
 
 Per object and difficulty: the median symmetry-aware rotation error, the fraction of crops off
 by more than 90 degrees, the median relative depth error and its signed median (a bias), and,
@@ -18,7 +21,7 @@ R_est^T R_gt in the object's frame. A large error about one fixed object axis is
 two poses that differ by a turn about that axis: an object that is nearly symmetric about it,
 whose distinguishing detail the network has not resolved (a mug's cap, a dumbbell's band).
 Writes ``OUT/anatomy.csv``, ``OUT/anatomy.json`` (with the overall figures per difficulty) and
-``OUT/anatomy.png`` (per object: rotation and depth errors at the three difficulties).
+``OUT/anatomy.png`` (per object: rotation and depth errors at each difficulty).
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ DIFFICULTIES: dict[str, dict | None] = {
     "full": None,
     "no-occlusion": {"occlusion": 0.0},
     "plain": {"occlusion": 0.0, "background": "plain"},
+    "exact-box": {"box_shift": 0.0, "box_scale": (1.0, 1.0)},
 }
 COLUMNS = ("difficulty", "obj_id", "n", "rot_median_deg", "rot_over_90", "depth_rel_median",
            "depth_signed_median", "axis_x", "axis_y", "axis_z")

@@ -127,6 +127,57 @@ def test_carried_state_resumes_bit_exact(runs, capsys):
     assert _files(state) == snap
 
 
+def test_amend_continues_a_run_under_a_changed_stream_and_resumes_bit_exact(runs, tmp_path, capsys):
+    """``sc6d train --resume --amend --set stream...``: run B's step-3 state trained on under exact
+    boxes. Amended, stopped before its next checkpoint, carried and resumed, it ends bit for bit
+    like the same amendment run uninterrupted, and not like the unamended run A; the change is
+    recorded with its step; changes of the model or of the objects are refused."""
+    from sc6d_jax.train import train
+    from sc6d_jax.train.config import TrainConfig
+    from sc6d_jax.train.loop import read_amendments
+
+    root, models = runs
+    sets = ["--set", "stream.box_shift=0", "--set", "stream.box_scale=1,1"]
+    straight, stopped = tmp_path / "straight", tmp_path / "stopped"
+    for d in (straight, stopped):
+        shutil.copytree(root / "b", d)
+    assert main(["train", "--models", str(models), "--out", str(straight), "--resume", "--amend", *sets,
+                 "--no-progress", "--quiet"]) == 0
+    amends = read_amendments(straight)
+    assert [a["step"] for a in amends] == [3]
+    assert sorted(c.split(" ")[0] for c in amends[0]["changes"]) == ["stream.box_scale", "stream.box_shift"]
+    cfg = json.loads((straight / "config.json").read_text())
+    assert cfg["stream"]["box_shift"] == 0 and cfg["stream"]["box_scale"] == [1, 1]
+
+    amended = TrainConfig.from_json((straight / "config.json").read_text())
+    with pytest.raises(_Stop):  # amended at step 3, killed at step 4 before any new checkpoint
+        train(amended, models, stopped, resume=True, amend=True, progress=False, verbose=False,
+              data_fns=_stopping_data_fns(4))
+    state = tmp_path / "state"
+    assert main(["carry", "--run", str(stopped), "--out", str(state)]) == 0
+    assert read_amendments(state) == amends
+    assert main(["train", "--models", str(models), "--out", str(state), "--resume", "--no-progress", "--quiet"]) == 0
+    ref = straight / "checkpoints" / "ckpt_00000006" / "state.npz"
+    with np.load(ref) as x, np.load(state / "checkpoints" / "ckpt_00000006" / "state.npz") as y, \
+            np.load(root / "a" / "checkpoints" / "ckpt_00000006" / "state.npz") as z:
+        for k in x.files:
+            np.testing.assert_array_equal(x[k], y[k], err_msg=k)
+        assert any(not np.array_equal(x[k], z[k]) for k in x.files if k.startswith("params/"))
+    assert [m["loss"] for m in _metrics(state)] == [m["loss"] for m in _metrics(straight)]
+    assert [m["loss"] for m in _metrics(state)][:3] == [m["loss"] for m in _metrics(root / "a")][:3]
+
+    capsys.readouterr()
+    for bad, match in ((["--set", "model.width=8"], "refused: model.width"),
+                       (["--obj-ids", "1,2"], "refused: model.n_objects")):
+        assert main(["train", "--models", str(models), "--out", str(straight), "--resume", "--amend", *bad,
+                     "--no-progress", "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and match in err, err
+    assert main(["train", "--models", str(models), "--out", str(tmp_path / "new"), "--amend", *sets]) == 2
+    assert "needs --resume" in capsys.readouterr().err
+    assert read_amendments(straight) == amends  # refusals change nothing
+
+
 def test_carry_refuses_bad_input_with_one_error_line(runs, tmp_path, capsys):
     root, _ = runs
     b = root / "b"

@@ -98,7 +98,8 @@ def test_distractors_stay_behind_the_target(models):
 
 
 def test_realism_options_reach_the_stream_from_the_config(models, tmp_path):
-    """``--set stream.sensor=true`` etc. are passed to the crop stream; when off, nothing is."""
+    """``--set stream.sensor=true`` etc. (and the box jitter) are passed to the crop stream; when
+    off (unset), nothing is."""
     seen: list[dict] = []
     default = _default_data_fns()
 
@@ -111,17 +112,20 @@ def test_realism_options_reach_the_stream_from_the_config(models, tmp_path):
 
     fns = DataFns(spy, default.stream, default.z_range)
     cfg = apply_overrides(preset("tiny"), ["stream.sensor=true", "stream.distractors=2", "stream.materials=true",
-                                           "stream.resample=true", "steps=2", "val_crops=0"])
+                                           "stream.resample=true", "stream.box_shift=0", "stream.box_scale=0.9,1.1",
+                                           "steps=2", "val_crops=0"])
     with pytest.raises(Stop):
         train(cfg, models, tmp_path / "a", workers=0, progress=False, verbose=False, data_fns=fns)
-    assert {k: seen[-1].get(k) for k in ("sensor", "distractors", "materials", "resample")} == {
-        "sensor": True, "distractors": 2, "materials": True, "resample": True}
+    assert {k: seen[-1].get(k) for k in ("sensor", "distractors", "materials", "resample", "box_shift", "box_scale")} == {
+        "sensor": True, "distractors": 2, "materials": True, "resample": True, "box_shift": 0.0, "box_scale": (0.9, 1.1)}
     with pytest.raises(Stop):
         train(preset("tiny", steps=2, val_crops=0), models, tmp_path / "b", workers=0, progress=False,
               verbose=False, data_fns=fns)
-    assert not {"sensor", "distractors", "materials", "resample"} & set(seen[-1])
+    assert not {"sensor", "distractors", "materials", "resample", "box_shift", "box_scale"} & set(seen[-1])
     with pytest.raises(ValueError, match="distractors"):
         apply_overrides(preset("tiny"), ["stream.distractors=-1"])
+    with pytest.raises(ValueError, match="box_scale"):
+        apply_overrides(preset("tiny"), ["stream.box_scale=1.1,0.9"])
 
 
 def test_gallery_script_draws_every_row_and_refuses_a_missing_folder(models, tmp_path, capsys):

@@ -64,6 +64,38 @@ def test_deterministic_and_worker_independent(models):
     assert not np.array_equal(a["rgb"], c["rgb"])
 
 
+def test_exact_boxes_frame_the_object_and_keep_the_poses(models):
+    """box_shift=0, box_scale=(1, 1): each crop is cut from the object's exact box, so the object
+    spans S / pad pixels along its longer side, centred; the poses are those of the default
+    (jittered) stream with the same seed: every setting draws the same random numbers."""
+    S, pad = 48, 1.5
+    kw = dict(crop_size=S, batch_size=8, workers=0, seed=3, augment=False, occlusion=0.0, pad=pad)
+    with CropStream(StreamConfig(str(models), box_shift=0.0, box_scale=(1.0, 1.0), **kw)) as s:
+        exact = s.batch(0)
+    with CropStream(StreamConfig(str(models), **kw)) as s:
+        jittered = s.batch(0)
+    for k in ("R", "t", "K", "obj_id"):
+        np.testing.assert_array_equal(exact[k], jittered[k])
+    spans, offsets = [], []
+    for b in (exact, jittered):
+        sp, of = [], []
+        for m in b["mask_visib"]:
+            ys, xs = np.nonzero(m)
+            w, h = xs.max() - xs.min() + 1, ys.max() - ys.min() + 1
+            sp.append(max(w, h))
+            of.append(max(abs((xs.max() + xs.min()) / 2 - (S - 1) / 2), abs((ys.max() + ys.min()) / 2 - (S - 1) / 2)))
+        spans.append(np.array(sp))
+        offsets.append(np.array(of))
+    np.testing.assert_allclose(spans[0], S / pad, atol=1.5)  # the mask's pixels: +-1 px at each edge
+    assert np.all(offsets[0] <= 1.0)
+    assert np.abs(spans[1] - S / pad).max() > 3 and offsets[1].max() > 3  # the default jitter moves and scales
+    assert exact["side"].tolist() != jittered["side"].tolist()
+    with pytest.raises(ValueError, match="box_scale"):
+        StreamConfig(str(models), box_scale=(1.2, 1.0))
+    with pytest.raises(ValueError, match="box_shift"):
+        StreamConfig(str(models), box_shift=-0.1)
+
+
 def test_delta_z_range_covers_samples(models):
     cfg = StreamConfig(str(models), crop_size=32, batch_size=16, workers=0)
     lo, hi = delta_z_range(cfg, n=500)

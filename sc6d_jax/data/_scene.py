@@ -73,6 +73,8 @@ def sample_pose(
     diameters: dict[int, float],
     distance: tuple[float, float] = (2.5, 9.0),
     jitter_box: bool = True,
+    box_shift: float = 0.25,
+    box_scale: tuple[float, float] = (0.75, 1.25),
 ) -> SamplePose:
     """A random object, camera, rotation (Haar) and position whose centre projects inside the image.
 
@@ -87,5 +89,5 @@ def sample_pose(
     v = rng.uniform(0.15, 0.85) * IMAGE_H
     t = z * np.linalg.solve(K, np.array([u, v, 1.0]))
     box_obj = project_box(vertices[obj_id], K, R, t)
-    box = jitter(rng, box_obj) if jitter_box else box_obj
+    box = jitter(rng, box_obj, box_shift, box_scale) if jitter_box else box_obj
     return SamplePose(obj_id, K, R, t, box, box_obj)

@@ -53,6 +53,12 @@ class StreamConfig:
         augment: colour augmentation (p 0.8) and random in-plane 90-degree rotations.
         occlusion: probability that other objects / primitives occlude the target.
         pad: crop padding factor (s_B = pad * max(w, h)).
+        box_shift, box_scale: the box jitter that the crop is cut from, the authors' dynamic
+            zoom-in: the centre moves by up to +-box_shift of the box's width and height, the
+            side is scaled by a factor drawn from box_scale. It stands for the detector's box
+            error; a crop whose box was scaled by s shows the object s times smaller, so the
+            depth head must measure the object's size in pixels to within its depth error.
+            (0, (1, 1)) = the amodal box itself. Every setting draws the same random numbers.
         distance: camera distance range in object diameters.
         background: "textured" (procedural patterns) or "plain" (one random colour per crop):
             plain backgrounds and no occlusion make a much easier task for tiny smoke runs.
@@ -93,6 +99,8 @@ class StreamConfig:
     augment: bool = True
     occlusion: float = 0.5
     pad: float = 1.5
+    box_shift: float = 0.25
+    box_scale: tuple[float, float] = (0.75, 1.25)
     distance: tuple[float, float] = (2.5, 9.0)
     background: str = "textured"
     curriculum: int = 0
@@ -106,6 +114,10 @@ class StreamConfig:
     def __post_init__(self) -> None:
         if self.background not in ("textured", "plain"):
             raise ValueError(f"background must be 'textured' or 'plain', got {self.background!r}")
+        if not 0.0 <= self.box_shift < 1.0:
+            raise ValueError(f"box_shift must be in [0, 1), got {self.box_shift!r}")
+        if len(self.box_scale) != 2 or not 0.0 < self.box_scale[0] <= self.box_scale[1]:
+            raise ValueError(f"box_scale must be (low, high) with 0 < low <= high, got {self.box_scale!r}")
         if self.curriculum < 0:
             raise ValueError(f"curriculum must be >= 0 batches, got {self.curriculum}")
         if not 0.0 <= self.occlusion <= 1.0:
@@ -264,7 +276,8 @@ class _Worker:
         from sc6d_jax import geometry as G
 
         cfg = self.cfg
-        poses = [sample_pose(r, self.obj_ids, self.vertices, self.diameters, cfg.distance) for r in rngs]
+        poses = [sample_pose(r, self.obj_ids, self.vertices, self.diameters, cfg.distance, box_shift=cfg.box_shift,
+                             box_scale=cfg.box_scale) for r in rngs]
         centers = np.array([[p.box[0] + p.box[2] / 2, p.box[1] + p.box[3] / 2] for p in poses])
         sides = np.array([cfg.pad * max(p.box[2], p.box[3]) for p in poses])
         T = np.asarray(G.crop_transform(centers, sides, cfg.crop_size), np.float64)
@@ -583,7 +596,7 @@ def delta_z_range(
     rng = np.random.default_rng([cfg.seed, 2**31 - 1])
     dz = []
     for _ in range(n):
-        p = sample_pose(rng, obj_ids, verts, diam, cfg.distance)
+        p = sample_pose(rng, obj_ids, verts, diam, cfg.distance, box_shift=cfg.box_shift, box_scale=cfg.box_scale)
         side = cfg.pad * max(p.box[2], p.box[3])
         d = p.t[2] * side / cfg.crop_size
         if focal_ref is not None:

@@ -15,6 +15,7 @@ and, for the curve to continue, the metrics.  ``STATE_DIR`` receives exactly tha
 - ``checkpoints/ckpt_XXXXXXXX/``: the newest checkpoint only (its SHA-256 is checked first);
 - ``metrics.jsonl``: the lines up to that checkpoint's step (later ones, from a leg killed
   between checkpoints, would be dropped by the resume anyway);
+- ``amendments.json``: the run's changes of config in mid-run (``sc6d train --amend``), if any;
 - ``carry.json``: what was carried from where (informative; it also marks the folder as a carry).
 
 It is a run directory as it is: ``sc6d train --models M --out STATE_DIR --resume`` continues it
@@ -136,8 +137,11 @@ def carry(run_dir: str | os.PathLike, out: str | os.PathLike) -> Carried:
     cfg_path = run_dir / "config.json"
     config = _read_json(cfg_path, "not a training run directory")
     cfg_bytes = cfg_path.read_bytes()
+    from sc6d_jax.train.loop import AMENDMENTS_FILE, read_amendments
+
+    amendments = [a for a in read_amendments(run_dir) if a["step"] <= step]
     diff = config_differences(config, meta["config"])
-    if diff:
+    if diff and not any(a["step"] == step for a in amendments):  # amended at this checkpoint: config.json is the new one
         raise ValueError(f"checkpoint {ckpt} was written for another config than {cfg_path}; "
                          f"differing: {'; '.join(diff)}")
     _check_out(out, run_dir, config, step)
@@ -161,6 +165,8 @@ def carry(run_dir: str | os.PathLike, out: str | os.PathLike) -> Carried:
         _write(tmp / "checkpoints" / ckpt.name / "state.npz", state)
         _write(tmp / "checkpoints" / ckpt.name / "meta.json", meta_bytes)
         _write(tmp / "metrics.jsonl", metrics.encode("utf-8"))
+        if amendments:
+            _write(tmp / AMENDMENTS_FILE, (json.dumps(amendments, indent=2) + "\n").encode("utf-8"))
         _write(tmp / _MARKER, (json.dumps(info, indent=2) + "\n").encode("utf-8"))
     size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     return Carried(out, step, size)

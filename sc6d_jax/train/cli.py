@@ -19,6 +19,11 @@ Any config field can be set with ``--set KEY=VALUE`` (repeatable; applied last),
 as in ``config.json``: ``--set loss.z_mode=regression --set model.use_pe=false --set
 optim.lr=1e-3 --set stream.occlusion=none --set steps=200``. Values are parsed with the field's
 type (bool: true/false/1/0/yes/no; tuples: comma-separated; ``none`` for optional fields).
+
+A resumed run refuses a changed config, except with ``--amend``: the rest of the run then trains
+under the changed stream or losses (e.g. ``--resume --amend --set stream.box_scale=1,1``) from its
+newest checkpoint on, with its parameters, optimiser state and schedule; the change and its step
+go to ``RUN_DIR/amendments.json`` (and into the run's curve). Later resumes continue bit for bit.
 """
 
 from __future__ import annotations
@@ -165,6 +170,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint-every", type=int, default=None, help="checkpoint interval in steps")
     p.add_argument("--log-every", type=int, default=None, help="metrics interval in steps")
     p.add_argument("--resume", action="store_true", help="continue from the newest checkpoint of --out")
+    p.add_argument("--amend", action="store_true",
+                   help="with --resume: continue the run under its config changed by --set (the stream or the "
+                        "losses only), recorded in RUN_DIR/amendments.json")
     p.add_argument("--workers", type=int, default=None, help="renderer worker processes (does not change the data)")
     p.add_argument("--init-weights", type=Path, default=None, help="local ResNet weights file for the backbone")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -221,11 +229,14 @@ def main(argv: list[str]) -> int:
 
     if args.workers is not None and args.workers < 0:
         raise ValueError(f"--workers must be >= 0, got {args.workers}")
+    if args.amend and not args.resume:
+        raise ValueError("--amend continues a run: it needs --resume")
     cfg = build_config(args)
     try:
         train(
             cfg, args.models, args.out, resume=args.resume, workers=args.workers,
             init_weights=args.init_weights, progress=not args.no_progress, verbose=not args.quiet,
+            amend=args.amend,
         )
     except NonFiniteLossError as exc:
         print(f"sc6d train: error: {exc}", file=sys.stderr)

@@ -69,6 +69,10 @@ class StreamSettings:
             ``sc6d_jax.data.StreamConfig``); the validation crops use the full meshes.
         distance: camera distance range in object diameters (``None`` = the stream's default,
             2.5 to 9); widen it when test objects sit farther away.
+        box_shift, box_scale: the training boxes' jitter (``sc6d_jax.data.StreamConfig``;
+            ``None`` = the stream's default, the authors' +-0.25 and 0.75-1.25): match it to
+            the box error expected at inference. The validation crops are cut with the same
+            jitter; every setting draws the same random numbers, so they show the same scenes.
     """
 
     batch_size: int = 32
@@ -83,8 +87,17 @@ class StreamSettings:
     sensor: bool = False
     distractors: int = 0
     max_faces: int = 0
+    box_shift: float | None = None
+    box_scale: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
+        if self.box_shift is not None and not 0.0 <= self.box_shift < 1.0:
+            raise ValueError(f"stream.box_shift must be in [0, 1) or None, got {self.box_shift!r}")
+        if self.box_scale is not None:
+            b = tuple(float(x) for x in self.box_scale)
+            if len(b) != 2 or not 0.0 < b[0] <= b[1]:
+                raise ValueError(f"stream.box_scale must be (low, high) with 0 < low <= high, got {self.box_scale!r}")
+            object.__setattr__(self, "box_scale", b)
         if not isinstance(self.max_faces, int) or self.max_faces < 0 or 0 < self.max_faces < 4:
             raise ValueError(f"stream.max_faces must be 0 (full meshes) or an integer >= 4, got {self.max_faces!r}")
         if not isinstance(self.distractors, int) or self.distractors < 0:

@@ -54,6 +54,7 @@ __all__ = [
     "initialize_distributed",
     "make_optimizer",
     "make_train_step",
+    "read_amendments",
     "train",
 ]
 
@@ -247,6 +248,7 @@ def train(
     verbose: bool = True,
     model_fns: ModelFns | None = None,
     data_fns: DataFns | None = None,
+    amend: bool = False,
 ) -> Any:
     """Train a model on crops streamed from the renderer; return the final parameters (numpy).
 
@@ -261,6 +263,12 @@ def train(
         progress: show a tqdm bar on stderr.
         verbose: print the config and checkpoint notes to stdout.
         model_fns, data_fns: replacements of :mod:`sc6d_jax.model` / :mod:`sc6d_jax.data`.
+        amend: with ``resume``, continue the run from its newest checkpoint under ``cfg`` even
+            where ``cfg`` differs from the run's config in the crop stream or the losses (what
+            the rest of the run trains on; the parameters, optimiser state, schedule and step
+            carry on). The change and its step are recorded in ``RUN_DIR/amendments.json``
+            and the run's config becomes ``cfg``. Changes of the model, the optimiser, the
+            step count, the seed or the objects are refused: they would not continue the run.
 
     Raises:
         ValueError: bad input (empty models folder, run directory of another config, corrupt or
@@ -312,8 +320,9 @@ def train(
         common["occlusion"] = cfg.stream.occlusion
     if cfg.curriculum_steps:
         common["curriculum"] = cfg.curriculum_steps
-    if cfg.stream.distance is not None:
-        common["distance"] = cfg.stream.distance
+    for name in ("distance", "box_shift", "box_scale"):  # None = the stream's default
+        if getattr(cfg.stream, name, None) is not None:
+            common[name] = getattr(cfg.stream, name)
     if getattr(cfg.loss, "w_dense", 0) > 0:
         common["dense"] = True
     for name in ("materials", "resample", "sensor", "distractors", "max_faces"):  # stream options, when on
@@ -340,7 +349,21 @@ def train(
         )
         cfg_dict = cfg.to_dict()
         cfg_path = run_dir / "config.json"
-        if cfg_path.is_file():
+        amendments = read_amendments(run_dir)
+        if amend:
+            if latest is None:
+                raise ValueError(f"amend: run directory {run_dir} has no checkpoint to continue from")
+            change = config_differences(read_meta(latest)["config"], cfg_dict)
+            bad = [d for d in change if not d.startswith(AMENDABLE) or d.startswith(("stream.obj_ids ", "stream.batch_size "))]
+            if bad:
+                raise ValueError(f"amend: only the stream (not its objects or batch size) and the losses can change "
+                                 f"in the middle of a run; refused: {'; '.join(bad)}")
+            amendments = [a for a in amendments if a["step"] != start]
+            if change:
+                amendments.append({"step": start, "changes": change})
+            if verbose and pidx == 0:
+                print(f"sc6d train: amending {run_dir} from step {start}: {'; '.join(change) or 'no change'}", flush=True)
+        elif cfg_path.is_file():
             try:
                 saved = json.loads(cfg_path.read_text(encoding="utf-8"))
             except (json.JSONDecodeError, UnicodeDecodeError) as exc:
@@ -350,7 +373,7 @@ def train(
                 raise ValueError(
                     f"run directory {run_dir} belongs to another config; differing fields: {'; '.join(diff)}"
                 )
-        if latest is not None:
+        if latest is not None and not amend and not any(a["step"] == start for a in amendments):
             diff = config_differences(read_meta(latest)["config"], cfg_dict)
             if diff:
                 raise ValueError(f"checkpoint {latest} was written for another config; differing: {'; '.join(diff)}")
@@ -402,6 +425,9 @@ def train(
         if pidx == 0:
             run_dir.mkdir(parents=True, exist_ok=True)
             atomic_write_text(cfg_path, cfg.to_json())
+            kept_amends = [a for a in amendments if a["step"] <= start]  # later ones went with their checkpoints
+            if kept_amends or (run_dir / AMENDMENTS_FILE).is_file():
+                atomic_write_text(run_dir / AMENDMENTS_FILE, json.dumps(kept_amends, indent=2) + "\n")
             kept = read_metrics_upto(metrics_path, start)
             atomic_write_text(metrics_path, "".join(line + "\n" for line in kept))
             time_offset = _time_offset(kept)
@@ -427,6 +453,25 @@ def train(
         close = getattr(stream, "close", None)
         if close is not None:
             close()
+
+
+AMENDMENTS_FILE = "amendments.json"
+#: config fields (dotted prefixes) that ``train(..., amend=True)`` may change in the middle of a run
+AMENDABLE = ("stream.", "loss.")
+
+
+def read_amendments(run_dir: str | os.PathLike) -> list[dict[str, Any]]:
+    """The run's recorded amendments (``[{"step": N, "changes": [...]}]``, oldest first; [] without)."""
+    path = Path(run_dir) / AMENDMENTS_FILE
+    if not path.is_file():
+        return []
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path} is not valid JSON ({exc})") from exc
+    if not isinstance(data, list) or not all(isinstance(a, dict) and isinstance(a.get("step"), int) for a in data):
+        raise ValueError(f"{path} is not a list of {{step, changes}} records")
+    return sorted(data, key=lambda a: a["step"])
 
 
 @dataclasses.dataclass(frozen=True)

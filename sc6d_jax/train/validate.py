@@ -66,8 +66,9 @@ class Validator:
         )
         if cfg.stream.occlusion is not None:
             kw["occlusion"] = cfg.stream.occlusion
-        if cfg.stream.distance is not None:
-            kw["distance"] = cfg.stream.distance
+        for name in ("distance", "box_shift", "box_scale"):  # the crops are cut as the run's are
+            if getattr(cfg.stream, name, None) is not None:
+                kw[name] = getattr(cfg.stream, name)
         kw.update(stream_overrides or {})
         n_batches = -(-self.n // self.batch)
         with CropStream(StreamConfig(**kw)) as stream:
