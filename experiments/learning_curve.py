@@ -26,7 +26,8 @@ the long run's figure in the README::
     python experiments/learning_curve.py --out experiments/results/learning_curves \\
         --name long_14objects --from-run long=experiments/state/long
 
-Curves longer than three hours are drawn against hours instead of minutes.
+Curves longer than three hours are drawn against hours instead of minutes. A run continued under
+a changed stream or losses (``sc6d train --resume --amend``) gets a dotted line where it changed.
 """
 
 from __future__ import annotations
@@ -82,7 +83,22 @@ def curve_rows(name: str, run_dir: Path) -> list[dict]:
     return rows
 
 
-def plot(rows: list[dict], path: Path) -> None:
+def amendment_marks(name: str, run_dir: Path, rows: list[dict]) -> list[tuple[float, str]]:
+    """(training minutes, label) of each mid-run change of the run's config (``sc6d train
+    --amend``), placed at the validation record of its step (an amendment starts at a checkpoint)."""
+    from sc6d_jax.train.loop import read_amendments
+
+    at = {r["step"]: r["train_min"] for r in rows if r["config"] == name}
+    marks = []
+    for a in read_amendments(run_dir):
+        if a["step"] in at:
+            fields = ", ".join(sorted({c.split(" ")[0] for c in a.get("changes", [])}))
+            marks.append((at[a["step"]], f"{name}: from step {a['step']:,}: {fields}"))
+    return marks
+
+
+def plot(rows: list[dict], path: Path, marks: list[tuple[float, str]] = ()) -> None:
+    """``marks``: (training minutes, label) drawn as vertical lines (mid-run config changes)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -102,6 +118,9 @@ def plot(rows: list[dict], path: Path) -> None:
             for i, k in enumerate(RAW):
                 axes[i].plot(xr, [r[k] * (100 if i == 2 else 1) for _, r in raw], "x--", color=lines[i].get_color(),
                              alpha=0.6, label=f"{name}: raw parameters (val_* = their moving average)")
+    for x_min, label in marks:
+        for i, ax in enumerate(axes):
+            ax.axvline(x_min / 60 if hours else x_min, color="0.4", ls=":", lw=1.2, label=label if i == 0 else None)
     for ax, t in zip(axes, ("validation AR (MSSD, MSPD)", "median rotation error [deg]", "median depth error [%]")):
         ax.set_xlabel(f"training {'hours' if hours else 'minutes'} (2 CPU cores)")
         ax.set_title(t)
@@ -206,7 +225,7 @@ def _from_runs(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     _write_csv(out / f"{args.name}.csv", rows, COLUMNS)
-    plot(rows, out / f"{args.name}.png")
+    plot(rows, out / f"{args.name}.png", [m for name, run in runs for m in amendment_marks(name, run, rows)])
     for name, _ in runs:
         last = [r for r in rows if r["config"] == name][-1]
         print(f"{name:>16}: step {last['step']}, {last['train_min']:.1f} min, val AR {last['val_ar']:.3f}, rotation "

@@ -164,6 +164,15 @@ def test_learning_curve_harness_writes_csv_and_plot(tmp_path, models):
     assert list(csv.DictReader(open(tmp_path / "plots" / "ab.csv"))) == rows
     assert (tmp_path / "plots" / "ab.png").stat().st_size > 10_000
     assert lc.main(["--out", str(tmp_path / "plots"), "--from-run", f"x={tmp_path}"]) == 2
+    # a run amended in mid-run (sc6d train --amend) is marked where it changed
+    a_rows = [r for r in rows if r["config"] == "a"]
+    step = int(a_rows[-1]["step"])
+    (out / "a" / "amendments.json").write_text(json.dumps([{"step": step, "changes": [
+        "stream.box_shift (None != 0.0)", "stream.box_scale (None != (1.0, 1.0))"]}]))
+    parsed = [{**r, "step": int(r["step"]), "train_min": float(r["train_min"])} for r in a_rows]
+    assert lc.amendment_marks("a", out / "a", parsed) == [
+        (float(a_rows[-1]["train_min"]), f"a: from step {step:,}: stream.box_scale, stream.box_shift")]
+    assert lc.main(["--out", str(tmp_path / "plots"), "--name", "amended", "--from-run", f"a={out / 'a'}"]) == 0
 
 
 def _harness():
