@@ -137,6 +137,7 @@ def test_breakdown_errors_pairing_and_misses():
     recs = breakdown_errors([img], ests, _models())
     assert [(r["obj_id"], r["gt_id"]) for r in recs] == [(1, 0), (1, 1), (2, 2)]
     r0, r1, r2 = recs
+    assert [r["visib_fract"] for r in recs] == [1.0, 1.0, 0.5]
     assert r1["est_id"] == 0 and r1["rot_deg"] == pytest.approx(30.0) and r1["depth_rel"] == pytest.approx(0.01)
     assert r0["est_id"] == 1 and r0["rot_deg"] == 0.0 and r0["depth_rel"] == pytest.approx(0.05)
     # object 2 has no estimate: a miss
@@ -187,6 +188,17 @@ def test_summarize_breakdown_medians_and_fractions():
     assert empty["overall"]["n"] == 0 and empty["overall"]["rot_median_deg"] is None and empty["per_object"] == {}
     line = format_breakdown_line(o)
     assert "rotation median 8.0 deg" in line and "depth median 3.0 %" in line and "40/60/80 %" in line
+    assert "per_visibility" not in s  # no visible fractions given
+    # grouped by visible fraction when every target has one: only the groups that hold targets
+    vis = [0.3, 0.97, 1.0, 0.6, 0.96]
+    sv = summarize_breakdown([{**d, "visib_fract": v} for d, v in zip(per, vis)])
+    assert list(sv["per_visibility"]) == ["<50%", "50-80%", ">=95%"]
+    assert [sv["per_visibility"][k]["n"] for k in sv["per_visibility"]] == [1, 1, 3]
+    hi = sv["per_visibility"][">=95%"]
+    assert hi["rot_median_deg"] == 15.0 and hi["missed"] == 1 and sv["per_visibility"]["<50%"]["rot_median_deg"] == 3.0
+    assert sv["overall"] == o and sv["per_object"] == s["per_object"]
+    with pytest.raises(ValueError, match="visib_fract"):
+        summarize_breakdown([{**per[0], "visib_fract": 1.5}])
     with pytest.raises(ValueError, match=r"per_target\[0\] has no 'centre_px'"):
         summarize_breakdown([{"obj_id": 1, "rot_deg": 1.0, "depth_rel": 0.1}])
     with pytest.raises(ValueError, match="non-negative"):
@@ -239,5 +251,9 @@ def test_eval_cli_breakdown_on_a_rendered_dataset(models, tmp_path, capsys):
     assert missed["missed"] == 1
     if missed["n"] == 1:
         assert missed["depth_rel_median"] is None  # inf is written as null
+    # grouped by the targets' visible fractions (scene_gt_info), which account for every target
+    pv = s["breakdown"]["per_visibility"]
+    assert set(pv) <= {"<50%", "50-80%", "80-95%", ">=95%"} and sum(d["n"] for d in pv.values()) == n
     printed = capsys.readouterr().out
     assert "pose-error breakdown" in printed and "rot_med" in printed
+    assert "by visible fraction of the target:" in printed

@@ -31,6 +31,7 @@ from sc6d_jax.metrics._bop19 import (
 )
 from sc6d_jax.metrics._breakdown import (
     MISS,
+    VISIBILITY_BINS,
     breakdown_errors,
     format_breakdown_line,
     pose_errors,
@@ -60,6 +61,7 @@ __all__ = [
     "MISS",
     "MSPD_THRESHOLDS",
     "MSSD_THRESHOLDS",
+    "VISIBILITY_BINS",
     "VISIB_GT_MIN",
     "VSD_DELTA",
     "VSD_TAUS",

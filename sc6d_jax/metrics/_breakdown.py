@@ -20,7 +20,8 @@ estimate is a **miss**: ``rot_deg = 180``, ``depth_rel = inf``, ``centre_px = in
 count as failures in every fraction and push the medians up.
 
 :func:`summarize_breakdown` turns the per-target errors into medians and the fractions of targets
-*strictly* under 5 / 10 / 20 degrees and 2 % / 5 % relative depth error, overall and per object.
+*strictly* under 5 / 10 / 20 degrees and 2 % / 5 % relative depth error, overall, per object and
+per visible fraction of the target (:data:`VISIBILITY_BINS`: how the errors grow with occlusion).
 Everything here works on in-memory arrays; ``evaluate_images`` / ``evaluate_bop19`` store the
 summary under the key ``"breakdown"`` of their scores.
 """
@@ -50,6 +51,11 @@ ROT_THRESHOLDS_DEG: tuple[float, ...] = (5.0, 10.0, 20.0)
 DEPTH_THRESHOLDS_REL: tuple[float, ...] = (0.02, 0.05)
 MISS: dict[str, float] = {"rot_deg": 180.0, "depth_rel": math.inf, "centre_px": math.inf}
 """The errors recorded for a target without an estimate."""
+
+VISIBILITY_BINS: tuple[tuple[str, float, float], ...] = (
+    ("<50%", 0.0, 0.5), ("50-80%", 0.5, 0.8), ("80-95%", 0.8, 0.95), (">=95%", 0.95, math.inf),
+)
+"""(label, low, high) of the visible-fraction groups of :func:`summarize_breakdown` (low <= v < high)."""
 
 SUMMARY_KEYS: tuple[str, ...] = (
     "n", "missed", "rot_median_deg", "depth_rel_median", "centre_median_px",
@@ -158,7 +164,8 @@ def breakdown_errors(
         one dict per valid ground truth, in image order then ground-truth order: ``scene_id``,
         ``im_id``, ``obj_id``, ``gt_id`` (index in the image's ground truths), ``est_id`` (index
         among the estimates of (scene, image, object) in input order; None for a miss),
-        ``score`` (None for a miss), ``missed`` (bool), ``rot_deg``, ``depth_rel``, ``centre_px``.
+        ``score`` (None for a miss), ``missed`` (bool), ``rot_deg``, ``depth_rel``, ``centre_px``,
+        ``visib_fract`` (the ground truth's visible fraction).
     """
     groups = _group_estimates(estimates)
     sym_cache: dict[int, np.ndarray] = {}
@@ -189,7 +196,8 @@ def breakdown_errors(
             if not valid[gt_id]:
                 continue
             rec = paired.get(gt_id, {"est_id": None, "score": None, "missed": True, **MISS})
-            out.append({"scene_id": img.scene_id, "im_id": img.im_id, "obj_id": int(g.obj_id), "gt_id": gt_id, **rec})
+            out.append({"scene_id": img.scene_id, "im_id": img.im_id, "obj_id": int(g.obj_id), "gt_id": gt_id, **rec,
+                        "visib_fract": float(g.visib_fract)})
     return out
 
 
@@ -218,10 +226,13 @@ def summarize_breakdown(per_target: Sequence[Mapping[str, Any]]) -> dict[str, An
     Args:
         per_target: dicts with ``obj_id``, ``rot_deg`` [degrees], ``depth_rel`` [fraction],
             ``centre_px`` [pixels] (e.g. from :func:`breakdown_errors`); an optional ``missed``
-            (bool) is counted. Misses should carry :data:`MISS` (180, inf, inf).
+            (bool) is counted. Misses should carry :data:`MISS` (180, inf, inf). When every
+            target has a ``visib_fract``, the summary is also grouped by it.
 
     Returns:
-        ``{"overall": S, "per_object": {obj_id: S}}`` (objects sorted by id), each ``S`` with
+        ``{"overall": S, "per_object": {obj_id: S}, "per_visibility": {label: S}}`` (objects
+        sorted by id; the visible-fraction groups of :data:`VISIBILITY_BINS` that hold targets,
+        in their order; ``per_visibility`` only with ``visib_fract``), each ``S`` with
         ``n`` (targets), ``missed``, ``rot_median_deg``, ``depth_rel_median`` (fraction, 0.05 =
         5 %), ``centre_median_px`` (medians; inf when more than half are misses), and
         ``rot_under_5`` / ``_10`` / ``_20`` (degrees), ``depth_under_2pct`` / ``_5pct`` (fractions of
@@ -233,6 +244,7 @@ def summarize_breakdown(per_target: Sequence[Mapping[str, Any]]) -> dict[str, An
     obj: list[int] = []
     cols: list[list[float]] = [[], [], []]
     missed: list[bool] = []
+    vis: list[float] = []
     for i, d in enumerate(per_target):
         if not isinstance(d, Mapping):
             raise ValueError(f"per_target[{i}] must be a dict, got {type(d).__name__}")
@@ -246,6 +258,11 @@ def summarize_breakdown(per_target: Sequence[Mapping[str, Any]]) -> dict[str, An
                 raise ValueError(f"per_target[{i}][{k!r}] must be a non-negative number (inf allowed), got {d[k]!r}")
             c.append(v)
         missed.append(bool(d.get("missed", False)))
+        if d.get("visib_fract") is not None:
+            v = float(d["visib_fract"])
+            if not 0.0 <= v <= 1.0:
+                raise ValueError(f"per_target[{i}]['visib_fract'] must be in [0, 1], got {d['visib_fract']!r}")
+            vis.append(v)
     o = np.asarray(obj, dtype=np.int64)
     rot, depth, centre = (np.asarray(c, dtype=np.float64) for c in cols)
     m = np.asarray(missed, dtype=bool)
@@ -253,7 +270,14 @@ def summarize_breakdown(per_target: Sequence[Mapping[str, Any]]) -> dict[str, An
     for oid in sorted(set(obj)):
         sel = o == oid
         per_object[oid] = _summary(rot[sel], depth[sel], centre[sel], int(m[sel].sum()))
-    return {"overall": _summary(rot, depth, centre, int(m.sum())), "per_object": per_object}
+    out = {"overall": _summary(rot, depth, centre, int(m.sum())), "per_object": per_object}
+    if vis and len(vis) == len(obj):
+        v = np.asarray(vis)
+        out["per_visibility"] = {
+            label: _summary(rot[sel], depth[sel], centre[sel], int(m[sel].sum()))
+            for label, lo, hi in VISIBILITY_BINS if (sel := (v >= lo) & (v < hi)).any()
+        }
+    return out
 
 
 def format_breakdown_line(s: Mapping[str, Any]) -> str:

@@ -85,6 +85,10 @@ def format_breakdown_table(breakdown: dict[str, Any]) -> str:
     for obj_id, d in breakdown["per_object"].items():
         lines.append(row(str(obj_id), d))
     lines.append(row("all", breakdown["overall"]))
+    if breakdown.get("per_visibility"):
+        lines.append("by visible fraction of the target:")
+        for label, d in breakdown["per_visibility"].items():
+            lines.append(row(label, d))
     return "\n".join(lines)
 
 
@@ -108,7 +112,8 @@ def _jsonable(scores: dict[str, Any]) -> dict[str, Any]:
     if isinstance(scores.get("breakdown"), dict):
         bd = scores["breakdown"]
         out["breakdown"] = _finite_or_none(
-            {"overall": bd["overall"], "per_object": {str(k): v for k, v in bd["per_object"].items()}}
+            {"overall": bd["overall"], "per_object": {str(k): v for k, v in bd["per_object"].items()},
+             **({"per_visibility": bd["per_visibility"]} if "per_visibility" in bd else {})}
         )
     return out
 
