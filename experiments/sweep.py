@@ -16,6 +16,9 @@ test set are created once inside DIR. A run is finished when its scores JSON exi
 training with ``sc6d train --resume`` and redoes only what is missing. Results: ``DIR/ablation.csv``
 + ``.md`` (mean and spread over seeds per row) and ``DIR/runs.csv`` (one line per run), or
 ``DIR/so3_samples.csv`` + ``.md``; figures (``DIR/*.png``) with :mod:`sc6d_jax.viz`.
+``DIR/.gitignore`` leaves out the trainings, the data and the logs: a committed sweep folder
+holds its scores, results and tables (a few hundred kB), so a rerun on a fresh machine skips
+every finished run.
 
 Budgets: ``tiny`` = the tiny preset for a few steps on objects 1 and 2 (one asymmetric, one
 continuous symmetric), 1 scene x 2 images, a 20k library (a test runs a sweep in about a minute);
@@ -152,7 +155,7 @@ def _parse_ints(text: str, what: str) -> tuple[int, ...]:
 
 def _check_settings(out: Path, kind: str, settings: dict[str, Any]) -> None:
     """Record the sweep's settings in DIR/sweep.json; refuse to mix another budget into DIR."""
-    from sc6d_jax._io import atomic_write_json
+    from sc6d_jax._io import atomic_write_json, atomic_write_text
 
     path = out / "sweep.json"
     if path.is_file():
@@ -164,6 +167,13 @@ def _check_settings(out: Path, kind: str, settings: dict[str, Any]) -> None:
                     f"{k}={({'kind': kind, **settings}).get(k)!r} (use another --out)"
                 )
     atomic_write_json(path, {"kind": kind, **settings})
+    # committed, the folder keeps only what the tables are made of (and what a rerun skips on)
+    atomic_write_text(out / ".gitignore", GITIGNORE)
+
+
+#: DIR/.gitignore: the bulky, reproducible parts of a sweep folder; the scores JSONs, the results
+#: CSVs and the tables stay, so a sweep folder can be committed and reruns skip its finished runs.
+GITIGNORE = "# written by experiments/sweep.py\n/runs/\n/models/\n/dataset/\n/logs/\n/figures/\n"
 
 
 def prepare_data(out: Path, budget: Budget, obj_ids: Sequence[int] | None) -> tuple[Path, Path]:

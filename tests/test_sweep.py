@@ -62,6 +62,10 @@ def test_ablation_resumes_and_writes_tables(ablation_dir):
     out, log = ablation_dir
     assert "[ablation 1/2] A0 (z regression) seed 0: skipped (finished earlier" in log
     assert "[ablation 2/2] TTA (+ TTA (ours)) seed 0: done" in log
+    # committed, the folder keeps its results and tables, not the runs, data and logs
+    ignored = (out / ".gitignore").read_text().split()
+    assert {"/runs/", "/models/", "/dataset/", "/logs/", "/figures/"} <= set(ignored)
+    assert not {"/scores/", "/results/"} & set(ignored)
     # the rows map to the intended training configs; TTA evaluates the A4 training with --tta
     a0 = json.loads((out / "runs" / "A0_s0" / "config.json").read_text())
     assert (a0["loss"]["z_mode"], a0["loss"]["z_loss"], a0["model"]["use_pe"]) == ("regression", "ce", False)
