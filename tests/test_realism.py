@@ -119,8 +119,8 @@ def test_realism_options_reach_the_stream_from_the_config(models, tmp_path):
     assert {k: seen[-1].get(k) for k in ("sensor", "distractors", "materials", "resample", "box_shift", "box_scale")} == {
         "sensor": True, "distractors": 2, "materials": True, "resample": True, "box_shift": 0.0, "box_scale": (0.9, 1.1)}
     with pytest.raises(Stop):
-        train(preset("tiny", steps=2, val_crops=0), models, tmp_path / "b", workers=0, progress=False,
-              verbose=False, data_fns=fns)
+        train(apply_overrides(preset("tiny", steps=2, val_crops=0), ["stream.box_shift=none", "stream.box_scale=none"]),
+              models, tmp_path / "b", workers=0, progress=False, verbose=False, data_fns=fns)
     assert not {"sensor", "distractors", "materials", "resample", "box_shift", "box_scale"} & set(seen[-1])
     with pytest.raises(ValueError, match="distractors"):
         apply_overrides(preset("tiny"), ["stream.distractors=-1"])
