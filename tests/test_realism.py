@@ -113,19 +113,22 @@ def test_realism_options_reach_the_stream_from_the_config(models, tmp_path):
     fns = DataFns(spy, default.stream, default.z_range)
     cfg = apply_overrides(preset("tiny"), ["stream.sensor=true", "stream.distractors=2", "stream.materials=true",
                                            "stream.resample=true", "stream.box_shift=0", "stream.box_scale=0.9,1.1",
-                                           "steps=2", "val_crops=0"])
+                                           "stream.box_source=visible", "steps=2", "val_crops=0"])
     with pytest.raises(Stop):
         train(cfg, models, tmp_path / "a", workers=0, progress=False, verbose=False, data_fns=fns)
-    assert {k: seen[-1].get(k) for k in ("sensor", "distractors", "materials", "resample", "box_shift", "box_scale")} == {
-        "sensor": True, "distractors": 2, "materials": True, "resample": True, "box_shift": 0.0, "box_scale": (0.9, 1.1)}
+    keys = ("sensor", "distractors", "materials", "resample", "box_shift", "box_scale", "box_source")
+    assert {k: seen[-1].get(k) for k in keys} == {"sensor": True, "distractors": 2, "materials": True, "resample": True,
+                                                  "box_shift": 0.0, "box_scale": (0.9, 1.1), "box_source": "visible"}
     with pytest.raises(Stop):
         train(apply_overrides(preset("tiny", steps=2, val_crops=0), ["stream.box_shift=none", "stream.box_scale=none"]),
               models, tmp_path / "b", workers=0, progress=False, verbose=False, data_fns=fns)
-    assert not {"sensor", "distractors", "materials", "resample", "box_shift", "box_scale"} & set(seen[-1])
+    assert not set(keys) & set(seen[-1])
     with pytest.raises(ValueError, match="distractors"):
         apply_overrides(preset("tiny"), ["stream.distractors=-1"])
     with pytest.raises(ValueError, match="box_scale"):
         apply_overrides(preset("tiny"), ["stream.box_scale=1.1,0.9"])
+    with pytest.raises(ValueError, match="box_source"):
+        apply_overrides(preset("tiny"), ["stream.box_source=full"])
 
 
 def test_gallery_script_draws_every_row_and_refuses_a_missing_folder(models, tmp_path, capsys):

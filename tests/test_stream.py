@@ -96,6 +96,35 @@ def test_exact_boxes_frame_the_object_and_keep_the_poses(models):
         StreamConfig(str(models), box_shift=-0.1)
 
 
+def test_visible_boxes_frame_the_visible_part_of_occluded_targets(models):
+    """box_source="visible": an occluded target's crop is cut from its visible box, so its visible
+    pixels span S / pad along the longer side, centred, as a crop cut from a ground truth's
+    bbox_visib at inference; labels still decode to the pose, delta_z stays inside the range."""
+    S, pad = 48, 1.5
+    kw = dict(crop_size=S, batch_size=12, workers=0, seed=5, augment=False, occlusion=1.0, pad=pad,
+              box_shift=0.0, box_scale=(1.0, 1.0))
+    vcfg = StreamConfig(str(models), box_source="visible", **kw)
+    with CropStream(vcfg) as s:
+        vis = s.batch(0)
+    with CropStream(StreamConfig(str(models), **kw)) as s:
+        amodal = s.batch(0)
+    lo, hi = delta_z_range(vcfg, n=500)
+    ratios = []
+    for i in range(12):
+        ys, xs = np.nonzero(vis["mask_visib"][i])
+        assert abs(max(xs.max() - xs.min(), ys.max() - ys.min()) - S / pad) <= 3, i
+        assert abs((xs.max() + xs.min()) / 2 - (S - 1) / 2) <= 1.5 and abs((ys.max() + ys.min()) / 2 - (S - 1) / 2) <= 1.5
+        t = G.decode_translation(vis["delta_xy"][i], vis["delta_z"][i], vis["K"][i], vis["center"][i], vis["side"][i], S)
+        np.testing.assert_allclose(np.asarray(t), vis["t"][i], rtol=1e-4)
+        assert lo < vis["delta_z"][i] < hi
+        if np.array_equal(vis["t"][i], amodal["t"][i]):  # the same pose (a rejected sample is redrawn)
+            ratios.append(amodal["side"][i] / vis["side"][i])
+    assert len(ratios) >= 8 and min(ratios) > 0.99 and max(ratios) > 1.1  # visible boxes are smaller
+    assert delta_z_range(vcfg, n=500)[0] < delta_z_range(StreamConfig(str(models), **kw), n=500)[0]
+    with pytest.raises(ValueError, match="box_source"):
+        StreamConfig(str(models), box_source="full")
+
+
 def test_delta_z_range_covers_samples(models):
     cfg = StreamConfig(str(models), crop_size=32, batch_size=16, workers=0)
     lo, hi = delta_z_range(cfg, n=500)

@@ -32,6 +32,8 @@ from sc6d_jax.data._scene import project_box, random_rotation, sample_pose
 #: Resample a crop whose visible mask is below either bound (authors' code).
 MIN_VISIBLE_PX = 50
 MIN_VISIBLE_FRACTION = 0.05
+#: the smallest visible box of a target relative to its amodal box that ``delta_z_range`` allows for
+VISIBLE_BOX_MIN = 0.3
 #: Procedural backgrounds pre-drawn per worker.
 BACKGROUND_BANK = 256
 #: Scheduling priority the worker processes lower themselves by (os.nice).
@@ -59,6 +61,13 @@ class StreamConfig:
             error; a crop whose box was scaled by s shows the object s times smaller, so the
             depth head must measure the object's size in pixels to within its depth error.
             (0, (1, 1)) = the amodal box itself. Every setting draws the same random numbers.
+        box_source: the box the crop is cut from (before the jitter): "amodal", the projection
+            of the whole model, or "visible", the bounding box of the target's visible pixels,
+            as the BOP ground truth's ``bbox_visib`` or a detector gives it: an occluded target
+            then fills the crop as it does at inference. The visible box is measured in a first
+            render of the crop's scene (target and occluders, masks only) through the amodal
+            box, so occluded crops cost two renders; unoccluded ones are cut from the amodal box
+            (their visible box). The jitter is applied to the visible box with the same draws.
         distance: camera distance range in object diameters.
         background: "textured" (procedural patterns) or "plain" (one random colour per crop):
             plain backgrounds and no occlusion make a much easier task for tiny smoke runs.
@@ -101,6 +110,7 @@ class StreamConfig:
     pad: float = 1.5
     box_shift: float = 0.25
     box_scale: tuple[float, float] = (0.75, 1.25)
+    box_source: str = "amodal"
     distance: tuple[float, float] = (2.5, 9.0)
     background: str = "textured"
     curriculum: int = 0
@@ -114,6 +124,8 @@ class StreamConfig:
     def __post_init__(self) -> None:
         if self.background not in ("textured", "plain"):
             raise ValueError(f"background must be 'textured' or 'plain', got {self.background!r}")
+        if self.box_source not in ("amodal", "visible"):
+            raise ValueError(f"box_source must be 'amodal' or 'visible', got {self.box_source!r}")
         if not 0.0 <= self.box_shift < 1.0:
             raise ValueError(f"box_shift must be in [0, 1), got {self.box_shift!r}")
         if len(self.box_scale) != 2 or not 0.0 < self.box_scale[0] <= self.box_scale[1]:
@@ -215,6 +227,13 @@ def resolve_obj_ids(cfg: StreamConfig) -> list[int]:
     return list(cfg.obj_ids)
 
 
+def _crop_matrix(center: np.ndarray, side: float, S: int) -> np.ndarray:
+    """``sc6d_jax.geometry.crop_transform`` of one box in numpy (image px -> crop px)."""
+    r = S / side
+    off = (S - 1) / 2
+    return np.array([[r, 0.0, off - r * center[0]], [0.0, r, off - r * center[1]], [0.0, 0.0, 1.0]])
+
+
 def _roll2(img: np.ndarray, dy: int, dx: int) -> np.ndarray:
     """``np.roll(img, (dy, dx), axis=(0, 1))`` as four block copies (np.roll: ~7x slower)."""
     h, w = img.shape[:2]
@@ -283,17 +302,47 @@ class _Worker:
         T = np.asarray(G.crop_transform(centers, sides, cfg.crop_size), np.float64)
         return poses, centers, sides, T
 
+    def _visible_crop(self, p, objects, prims) -> tuple[np.ndarray, float, np.ndarray] | None:
+        """(center, side, T) of the crop cut from the target's visible box, jittered as ``p.box``
+        jitters ``p.box_obj``; None when too little of the target is visible. The visible box is
+        measured on the masks of a render through the (unjittered) amodal box's crop."""
+        cfg, S = self.cfg, self.cfg.crop_size
+        xo, yo, wo, ho = (float(v) for v in p.box_obj)
+        c0 = np.array([xo + wo / 2, yo + ho / 2])
+        T0 = _crop_matrix(c0, cfg.pad * max(wo, ho), S)
+        mask = self.renderer.render(objects, T0 @ p.K, primitives=prims, depth=False).mask_visib[0]
+        ys, xs = np.nonzero(mask)
+        if len(xs) < MIN_VISIBLE_PX:
+            return None
+        r, tx, ty = T0[0, 0], T0[0, 2], T0[1, 2]
+        u0, u1 = (xs.min() - tx) / r, (xs.max() - tx) / r  # pixel centres, as bbox_visib
+        v0, v1 = (ys.min() - ty) / r, (ys.max() - ty) / r
+        wv, hv = max(u1 - u0, 1.0), max(v1 - v0, 1.0)
+        # the jitter that took box_obj to box, applied to the visible box (the same draws)
+        xj, yj, wj, hj = (float(v) for v in p.box)
+        scale = wj / wo
+        dx = (xj + wj / 2 - c0[0]) / wo
+        dy = (yj + hj / 2 - c0[1]) / ho
+        center = np.array([(u0 + u1) / 2 + dx * wv, (v0 + v1) / 2 + dy * hv])
+        side = cfg.pad * scale * max(wv, hv)
+        return center, side, _crop_matrix(center, side, S)
+
     def _render(self, rng: np.random.Generator, p, side: float, T: np.ndarray, difficulty: float = 1.0):
         """Render one crop through K_B = T K with occluders, lights and a background.
 
-        Returns (rgb, visible mask) or None when too little of the target is visible."""
+        Returns (rgb, visible mask, depth or None, center, side, T) -- the crop box changes
+        only with ``box_source="visible"`` and occluders -- or None when too little of the
+        target is visible."""
         from sc6d_jax.render import Light, Primitive
 
         cfg, S = self.cfg, self.cfg.crop_size
         K_B = T @ p.K
+        center = None
         objects = [(p.obj_id, p.R, p.t)]
         prims = []
+        occluded = False
         if rng.random() < cfg.occlusion * difficulty:  # occluders between the camera and the target
+            occluded = True
             for _ in range(rng.integers(1, 3)):
                 depth = p.t[2] * rng.uniform(0.55, 0.9)
                 off = rng.uniform(-0.45, 0.45, 2) * side / p.K[0, 0] * depth
@@ -329,9 +378,14 @@ class _Worker:
             for _ in range(rng.integers(1, 3))
         ]
         self.renderer.set_lights(lights, headlight=(rng.uniform(0.1, 0.4), rng.uniform(0.1, 0.5)))
-        out = self.renderer.render(
-            objects, K_B, primitives=prims, background=self.background(rng, difficulty), depth=cfg.dense
-        )
+        background = self.background(rng, difficulty)
+        if cfg.box_source == "visible" and occluded:
+            got = self._visible_crop(p, objects, prims)
+            if got is None:
+                return None
+            center, side, T = got
+            K_B = T @ p.K
+        out = self.renderer.render(objects, K_B, primitives=prims, background=background, depth=cfg.dense)
         mask = out.mask_visib[0]
         n_vis = int(mask.sum())
         if n_vis < MIN_VISIBLE_PX or n_vis < MIN_VISIBLE_FRACTION * S * S:
@@ -339,7 +393,7 @@ class _Worker:
         rgb = out.rgb
         if cfg.resample or cfg.sensor:
             rgb = camera_effects(rng, rgb, side, resample=cfg.resample, sensor=cfg.sensor)
-        return rgb, mask, out.depth
+        return rgb, mask, out.depth, center, side, T
 
     def batch(self, b: int) -> dict[str, np.ndarray]:
         """Batch ``b``: sample j draws from default_rng([seed, b, j]) only. Labels (translation
@@ -354,7 +408,9 @@ class _Worker:
             for attempt in range(50):
                 got = self._render(rngs[j], poses[j], sides[j], T[j], self.difficulty(b))
                 if got is not None:
-                    rgbs[j], masks[j], depths[j] = got
+                    rgbs[j], masks[j], depths[j], c_j, sides[j], T[j] = got
+                    if c_j is not None:  # cut from the visible box
+                        centers[j] = c_j
                     break
                 p2, c2, s2, T2 = self._poses([rngs[j]])  # resample this one (rare)
                 poses[j], centers[j], sides[j], T[j] = p2[0], c2[0], s2[0], T2[0]
@@ -585,7 +641,12 @@ def delta_z_range(
     ``margin`` on each side. Poses only (no rendering), deterministic in ``cfg.seed``.
 
     focal_ref: the range of the focal-normalised code delta_z * focal_ref / sqrt(fx fy)
-    instead (``sc6d_jax.model.LossConfig.z_norm = "focal"``)."""
+    instead (``sc6d_jax.model.LossConfig.z_norm = "focal"``).
+
+    With ``box_source="visible"`` an occluded target's crop is cut from its visible box, which
+    can be much smaller than the amodal box the poses give: the low end is lowered to
+    ``VISIBLE_BOX_MIN * d_lo`` (a target 10 % visible keeps a visible box of about a third of
+    its amodal one)."""
     from sc6d_jax.bop import load_models_info, model_path
     from sc6d_jax.render import load_mesh
 
@@ -604,4 +665,7 @@ def delta_z_range(
         dz.append(d)
     lo, hi = float(np.min(dz)), float(np.max(dz))
     span = hi - lo
-    return max(lo - margin * span, 1e-3), hi + margin * span
+    lo = max(lo - margin * span, 1e-3)
+    if cfg.box_source == "visible":
+        lo *= VISIBLE_BOX_MIN
+    return lo, hi + margin * span

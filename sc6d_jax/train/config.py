@@ -73,6 +73,9 @@ class StreamSettings:
             ``None`` = the stream's default, the authors' +-0.25 and 0.75-1.25): match it to
             the box error expected at inference. The validation crops are cut with the same
             jitter; every setting draws the same random numbers, so they show the same scenes.
+        box_source: ``"amodal"`` or ``"visible"`` (``sc6d_jax.data.StreamConfig``; ``None`` = the
+            stream's default, amodal): cut an occluded target's crop from its visible box, as a
+            ground-truth ``bbox_visib`` or a detector gives it. The validation crops follow.
     """
 
     batch_size: int = 32
@@ -89,8 +92,11 @@ class StreamSettings:
     max_faces: int = 0
     box_shift: float | None = None
     box_scale: tuple[float, float] | None = None
+    box_source: str | None = None
 
     def __post_init__(self) -> None:
+        if self.box_source not in (None, "amodal", "visible"):
+            raise ValueError(f"stream.box_source must be 'amodal', 'visible' or None, got {self.box_source!r}")
         if self.box_shift is not None and not 0.0 <= self.box_shift < 1.0:
             raise ValueError(f"stream.box_shift must be in [0, 1) or None, got {self.box_shift!r}")
         if self.box_scale is not None:

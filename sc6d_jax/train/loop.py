@@ -320,7 +320,7 @@ def train(
         common["occlusion"] = cfg.stream.occlusion
     if cfg.curriculum_steps:
         common["curriculum"] = cfg.curriculum_steps
-    for name in ("distance", "box_shift", "box_scale"):  # None = the stream's default
+    for name in ("distance", "box_shift", "box_scale", "box_source"):  # None = the stream's default
         if getattr(cfg.stream, name, None) is not None:
             common[name] = getattr(cfg.stream, name)
     if getattr(cfg.loss, "w_dense", 0) > 0:

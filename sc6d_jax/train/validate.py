@@ -66,7 +66,7 @@ class Validator:
         )
         if cfg.stream.occlusion is not None:
             kw["occlusion"] = cfg.stream.occlusion
-        for name in ("distance", "box_shift", "box_scale"):  # the crops are cut as the run's are
+        for name in ("distance", "box_shift", "box_scale", "box_source"):  # the crops are cut as the run's are
             if getattr(cfg.stream, name, None) is not None:
                 kw[name] = getattr(cfg.stream, name)
         kw.update(stream_overrides or {})
