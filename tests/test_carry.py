@@ -128,8 +128,8 @@ def test_carried_state_resumes_bit_exact(runs, capsys):
 
 
 def test_amend_continues_a_run_under_a_changed_stream_and_resumes_bit_exact(runs, tmp_path, capsys):
-    """``sc6d train --resume --amend --set stream...``: run B's step-3 state trained on under exact
-    boxes. Amended, stopped before its next checkpoint, carried and resumed, it ends bit for bit
+    """``sc6d train --resume --amend --set stream...``: run B's step-3 state trained on under
+    jittered boxes. Amended, stopped before its next checkpoint, carried and resumed, it ends bit for bit
     like the same amendment run uninterrupted, and not like the unamended run A; the change is
     recorded with its step; changes of the model or of the objects are refused."""
     from sc6d_jax.train import train
@@ -137,7 +137,7 @@ def test_amend_continues_a_run_under_a_changed_stream_and_resumes_bit_exact(runs
     from sc6d_jax.train.loop import read_amendments
 
     root, models = runs
-    sets = ["--set", "stream.box_shift=0", "--set", "stream.box_scale=1,1"]
+    sets = ["--set", "stream.box_shift=0.1", "--set", "stream.box_scale=0.9,1.1"]  # tiny's: 0 and (1, 1)
     straight, stopped = tmp_path / "straight", tmp_path / "stopped"
     for d in (straight, stopped):
         shutil.copytree(root / "b", d)
@@ -147,7 +147,7 @@ def test_amend_continues_a_run_under_a_changed_stream_and_resumes_bit_exact(runs
     assert [a["step"] for a in amends] == [3]
     assert sorted(c.split(" ")[0] for c in amends[0]["changes"]) == ["stream.box_scale", "stream.box_shift"]
     cfg = json.loads((straight / "config.json").read_text())
-    assert cfg["stream"]["box_shift"] == 0 and cfg["stream"]["box_scale"] == [1, 1]
+    assert cfg["stream"]["box_shift"] == 0.1 and cfg["stream"]["box_scale"] == [0.9, 1.1]
 
     amended = TrainConfig.from_json((straight / "config.json").read_text())
     with pytest.raises(_Stop):  # amended at step 3, killed at step 4 before any new checkpoint
