@@ -227,13 +227,6 @@ def resolve_obj_ids(cfg: StreamConfig) -> list[int]:
     return list(cfg.obj_ids)
 
 
-def _crop_matrix(center: np.ndarray, side: float, S: int) -> np.ndarray:
-    """``sc6d_jax.geometry.crop_transform`` of one box in numpy (image px -> crop px)."""
-    r = S / side
-    off = (S - 1) / 2
-    return np.array([[r, 0.0, off - r * center[0]], [0.0, r, off - r * center[1]], [0.0, 0.0, 1.0]])
-
-
 def _roll2(img: np.ndarray, dy: int, dx: int) -> np.ndarray:
     """``np.roll(img, (dy, dx), axis=(0, 1))`` as four block copies (np.roll: ~7x slower)."""
     h, w = img.shape[:2]
@@ -306,10 +299,12 @@ class _Worker:
         """(center, side, T) of the crop cut from the target's visible box, jittered as ``p.box``
         jitters ``p.box_obj``; None when too little of the target is visible. The visible box is
         measured on the masks of a render through the (unjittered) amodal box's crop."""
+        from sc6d_jax import geometry as G
+
         cfg, S = self.cfg, self.cfg.crop_size
         xo, yo, wo, ho = (float(v) for v in p.box_obj)
         c0 = np.array([xo + wo / 2, yo + ho / 2])
-        T0 = _crop_matrix(c0, cfg.pad * max(wo, ho), S)
+        T0 = np.asarray(G.crop_transform(c0, cfg.pad * max(wo, ho), S), np.float64)
         mask = self.renderer.render(objects, T0 @ p.K, primitives=prims, depth=False).mask_visib[0]
         ys, xs = np.nonzero(mask)
         if len(xs) < MIN_VISIBLE_PX:
@@ -325,7 +320,7 @@ class _Worker:
         dy = (yj + hj / 2 - c0[1]) / ho
         center = np.array([(u0 + u1) / 2 + dx * wv, (v0 + v1) / 2 + dy * hv])
         side = cfg.pad * scale * max(wv, hv)
-        return center, side, _crop_matrix(center, side, S)
+        return center, side, np.asarray(G.crop_transform(center, side, S), np.float64)
 
     def _render(self, rng: np.random.Generator, p, side: float, T: np.ndarray, difficulty: float = 1.0):
         """Render one crop through K_B = T K with occluders, lights and a background.

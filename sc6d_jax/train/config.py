@@ -94,6 +94,15 @@ class StreamSettings:
     box_scale: tuple[float, float] | None = None
     box_source: str | None = None
 
+    #: fields whose ``None`` leaves the crop stream's own default in place
+    STREAM_DEFAULTED = ("occlusion", "distance", "box_shift", "box_scale", "box_source")
+
+    def set_scene_fields(self) -> dict[str, Any]:
+        """The :data:`STREAM_DEFAULTED` fields this config sets (not None), as
+        ``sc6d_jax.data.StreamConfig`` keywords: the training stream and the validation crops
+        both take them, so the validation crops show the run's scenes, cut as its crops are."""
+        return {k: getattr(self, k) for k in self.STREAM_DEFAULTED if getattr(self, k) is not None}
+
     def __post_init__(self) -> None:
         if self.box_source not in (None, "amodal", "visible"):
             raise ValueError(f"stream.box_source must be 'amodal', 'visible' or None, got {self.box_source!r}")

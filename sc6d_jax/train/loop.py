@@ -316,13 +316,9 @@ def train(
         models_dir=models_dir, crop_size=cfg.model.crop_size, workers=workers,
         obj_ids=cfg.stream.obj_ids, augment=cfg.stream.augment,
     )
-    if cfg.stream.occlusion is not None:
-        common["occlusion"] = cfg.stream.occlusion
+    common.update(cfg.stream.set_scene_fields())  # None = the stream's default
     if cfg.curriculum_steps:
         common["curriculum"] = cfg.curriculum_steps
-    for name in ("distance", "box_shift", "box_scale", "box_source"):  # None = the stream's default
-        if getattr(cfg.stream, name, None) is not None:
-            common[name] = getattr(cfg.stream, name)
     if getattr(cfg.loss, "w_dense", 0) > 0:
         common["dense"] = True
     for name in ("materials", "resample", "sensor", "distractors", "max_faces"):  # stream options, when on

@@ -64,11 +64,7 @@ class Validator:
             models_dir=str(models_dir), crop_size=cfg.model.crop_size, batch_size=self.batch,
             seed=_val_seed(cfg.seed), workers=0, obj_ids=tuple(cfg.stream.obj_ids), augment=False,
         )
-        if cfg.stream.occlusion is not None:
-            kw["occlusion"] = cfg.stream.occlusion
-        for name in ("distance", "box_shift", "box_scale", "box_source"):  # the crops are cut as the run's are
-            if getattr(cfg.stream, name, None) is not None:
-                kw[name] = getattr(cfg.stream, name)
+        kw.update(cfg.stream.set_scene_fields())  # the run's scenes, cut as its crops are
         kw.update(stream_overrides or {})
         n_batches = -(-self.n // self.batch)
         with CropStream(StreamConfig(**kw)) as stream:
