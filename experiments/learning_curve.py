@@ -21,8 +21,9 @@ when the test set is the benchmark.
 
 ``--from-run NAME=RUN_DIR`` (repeatable) trains nothing: it reads the validation records of
 existing runs (a training folder or a carried state, ``sc6d carry``) and writes their curves, e.g.
-the long run's figure in the README::
+the long run's figure in the README, drawn from its last carried state (commit ``e3a5a9f``)::
 
+    git checkout e3a5a9f -- experiments/state/long
     python experiments/learning_curve.py --out experiments/results/learning_curves \\
         --name long_14objects --from-run long=experiments/state/long
 
