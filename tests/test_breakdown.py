@@ -176,14 +176,17 @@ def test_summarize_breakdown_medians_and_fractions():
     assert o["rot_median_deg"] == 8.0 and o["depth_rel_median"] == 0.03 and o["centre_median_px"] == 3.0
     assert o["rot_under_5"] == pytest.approx(2 / 5) and o["rot_under_10"] == pytest.approx(3 / 5)
     assert o["rot_under_20"] == pytest.approx(4 / 5)
+    assert o["rot_over_90"] == pytest.approx(1 / 5)  # the miss counts as 180 degrees
     assert o["depth_under_2pct"] == pytest.approx(1 / 5)  # 0.02 is not strictly below 2 %
     assert o["depth_under_5pct"] == pytest.approx(3 / 5)
     assert list(s["per_object"]) == [1, 2]
     p1, p2 = s["per_object"][1], s["per_object"][2]
     assert p1["n"] == 3 and p1["rot_median_deg"] == 8.0 and p1["missed"] == 0
     assert p2["rot_median_deg"] == 92.0 and p2["depth_rel_median"] == math.inf  # half missed
+    assert p1["rot_over_90"] == 0.0 and p2["rot_over_90"] == 0.5
     assert set(o) == set(p1) >= {"n", "rot_median_deg", "depth_rel_median", "centre_median_px", "rot_under_5",
-                                  "rot_under_10", "rot_under_20", "depth_under_2pct", "depth_under_5pct"}
+                                  "rot_under_10", "rot_under_20", "rot_over_90", "depth_under_2pct",
+                                  "depth_under_5pct"}
     empty = summarize_breakdown([])
     assert empty["overall"]["n"] == 0 and empty["overall"]["rot_median_deg"] is None and empty["per_object"] == {}
     line = format_breakdown_line(o)

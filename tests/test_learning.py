@@ -128,6 +128,7 @@ def test_learning_curve_harness_writes_csv_and_plot(tmp_path, models):
     rows = list(csv.DictReader(open(out / "curves.csv")))
     assert [(x["config"], x["step"]) for x in rows] == [("a", "10"), ("a", "20"), ("b", "10"), ("b", "20")]
     assert float(rows[1]["crops_per_object"]) == 20 * 16
+    assert all(0.0 <= float(x["val_rot_over_90"]) <= 1.0 for x in rows)  # the share turned the wrong way round
     # checkpoints every 10 steps, logs every 20 (tiny): a validated step is logged all the same
     recs = [json.loads(x) for x in (out / "a" / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in recs] == [10, 20] and all("loss" in r and "val_ar" in r for r in recs)

@@ -69,16 +69,18 @@ def format_breakdown_table(breakdown: dict[str, Any]) -> str:
     """The pose-error breakdown table of ``sc6d eval``: per object and overall.
 
     Columns: targets, targets without an estimate, median rotation error [deg] and % under 5 / 10 /
-    20 deg, median relative depth error [%] and % under 2 / 5 %, median projected-centre error [px].
+    20 deg and over 90 deg (turned the wrong way round), median relative depth error [%] and %
+    under 2 / 5 %, median projected-centre error [px].
     """
     head = (f"{'object':>8}  {'targets':>7}  {'missed':>6}  {'rot_med':>7}  {'<5deg':>5}  {'<10deg':>6}  "
-            f"{'<20deg':>6}  {'depth_med':>9}  {'<2%':>4}  {'<5%':>4}  {'centre_med':>10}")
+            f"{'<20deg':>6}  {'>90deg':>6}  {'depth_med':>9}  {'<2%':>4}  {'<5%':>4}  {'centre_med':>10}")
     lines = ["pose-error breakdown (medians; % of targets under the thresholds; a target without an "
              "estimate counts as 180 deg, inf depth and centre errors)", head]
 
     def row(name: str, d: dict[str, Any]) -> str:
         return (f"{name:>8}  {d['n']:>7}  {d.get('missed', 0):>6}  {_bd_num(d['rot_median_deg']):>7}  "
                 f"{_bd_pct(d['rot_under_5']):>5}  {_bd_pct(d['rot_under_10']):>6}  {_bd_pct(d['rot_under_20']):>6}  "
+                f"{_bd_pct(d.get('rot_over_90')):>6}  "
                 f"{_bd_num(d['depth_rel_median'], 100.0) + ' %':>9}  {_bd_pct(d['depth_under_2pct']):>4}  "
                 f"{_bd_pct(d['depth_under_5pct']):>4}  {_bd_num(d['centre_median_px']) + ' px':>10}")
 

@@ -163,7 +163,7 @@ class Validator:
             "val_ar_mspd": ar_mspd,
         }
         for k in ("rot_median_deg", "depth_rel_median", "centre_median_px", "rot_under_5", "rot_under_10",
-                  "rot_under_20", "depth_under_2pct", "depth_under_5pct"):
+                  "rot_under_20", "rot_over_90", "depth_under_2pct", "depth_under_5pct"):
             out[f"val_{k}"] = float(s[k])
         return out
 
