@@ -46,7 +46,8 @@ sys.path.insert(0, str(ROOT))
 from sc6d_jax.train.loop import RAW_LOGGED as RAW  # noqa: E402  (validation of a moving average's raw parameters)
 
 COLUMNS = ("config", "step", "train_min", "crops_per_object", "val_ar", "val_rot_median_deg",
-           "val_depth_rel_median", "val_centre_median_px", "val_rot_under_10", "val_rot_over_90", "val_depth_under_2pct", *RAW)
+           "val_depth_rel_median", "val_centre_median_px", "val_rot_under_10", "val_rot_over_90",
+           "val_depth_under_2pct", *RAW)
 
 
 def parse_config(text: str) -> tuple[str, list[str]]:
@@ -282,8 +283,8 @@ def _test(args, out: Path, models: Path, names: list[str]) -> None:
     _write_csv(out / "test.csv", rows, ("config", "ar", "rot_median_deg", "depth_rel_median", "centre_median_px"))
 
 
-TEST_DATASET_COLUMNS = ("config", "obj_id", "targets", "ar", "ar_mssd", "ar_mspd", "ar_vsd", "rot_median_deg",
-                        "depth_rel_median", "centre_median_px", "rot_under_10", "rot_over_90")
+BREAKDOWN_COLUMNS = ("rot_median_deg", "depth_rel_median", "centre_median_px", "rot_under_10", "rot_over_90")
+TEST_DATASET_COLUMNS = ("config", "obj_id", "targets", "ar", "ar_mssd", "ar_mspd", "ar_vsd", *BREAKDOWN_COLUMNS)
 
 
 def dataset_rows(name: str, scores: dict, obj_ids: list[int]) -> list[dict]:
@@ -297,8 +298,7 @@ def dataset_rows(name: str, scores: dict, obj_ids: list[int]) -> list[dict]:
             continue
         rows.append({"config": name, "obj_id": o, "targets": int(d["targets"]), "ar": d["ar"], "ar_mssd": d["ar_mssd"],
                      "ar_mspd": d["ar_mspd"], "ar_vsd": d.get("ar_vsd"),
-                     **{k: b.get(k) for k in ("rot_median_deg", "depth_rel_median", "centre_median_px", "rot_under_10",
-                                                         "rot_over_90")}})
+                     **{k: b.get(k) for k in BREAKDOWN_COLUMNS}})
     n = sum(r["targets"] for r in rows)
     if n:
         pooled = {k: sum(r[k] * r["targets"] for r in rows) / n for k in ("ar", "ar_mssd", "ar_mspd")}
