@@ -215,7 +215,7 @@ def _summary(rot: np.ndarray, depth: np.ndarray, centre: np.ndarray, missed: int
         "rot_under_5": float(np.mean(rot < 5.0)),
         "rot_under_10": float(np.mean(rot < 10.0)),
         "rot_under_20": float(np.mean(rot < 20.0)),
-        "rot_over_90": float(np.mean(rot > 90.0)),  # wrong side up: flips between near-symmetric views
+        "rot_over_90": float(np.mean(rot > 90.0)),  # turned the wrong way round (near-symmetric objects)
         "depth_under_2pct": float(np.mean(depth < 0.02)),
         "depth_under_5pct": float(np.mean(depth < 0.05)),
     }

@@ -135,7 +135,7 @@ class Validator:
     def score(self, pred: dict[str, np.ndarray]) -> dict[str, float]:
         """The breakdown of estimates ``pred`` (as :meth:`predict` returns them), as ``val_*`` floats."""
         from sc6d_jax.metrics import MSPD_THRESHOLDS, MSSD_THRESHOLDS, mspd, mssd
-        from sc6d_jax.metrics._breakdown import pose_errors, summarize_breakdown
+        from sc6d_jax.metrics._breakdown import SUMMARY_KEYS, pose_errors, summarize_breakdown
 
         d = self.data
         rows = []
@@ -162,9 +162,9 @@ class Validator:
             "val_ar_mssd": ar_mssd,
             "val_ar_mspd": ar_mspd,
         }
-        for k in ("rot_median_deg", "depth_rel_median", "centre_median_px", "rot_under_5", "rot_under_10",
-                  "rot_under_20", "rot_over_90", "depth_under_2pct", "depth_under_5pct"):
-            out[f"val_{k}"] = float(s[k])
+        for k in SUMMARY_KEYS:
+            if k not in ("n", "missed"):  # every crop is estimated
+                out[f"val_{k}"] = float(s[k])
         return out
 
 
