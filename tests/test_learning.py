@@ -122,7 +122,7 @@ def test_learning_curve_harness_writes_csv_and_plot(tmp_path, models):
     out = tmp_path / "lc"
     cmd = [sys.executable, str(REPO / "experiments" / "learning_curve.py"), "--out", str(out), "--models", str(models),
            "--preset", "tiny", "--obj-ids", str(ASYM_OBJ), "--steps", "20", "--checkpoint-every", "10",
-           "--workers", "0", "--config", "a:val_crops=16", "--config", "b:val_crops=16,optim.lr=1e-3,ema=0.9"]
+           "--workers", "0", "--config", "a:val_crops=16", "--config", "b:val_crops=16,ema=0.9"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     rows = list(csv.DictReader(open(out / "curves.csv")))

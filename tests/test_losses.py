@@ -28,6 +28,7 @@ from sc6d_jax.model import (
 CFG = ModelConfig(
     n_objects=2, crop_size=32, backbone="tiny", width=8, decoder_width=16, feat_dim=8, emb_dim=8,
     n_z_bins=16, pose_width=8, head_hidden=16, so3_hidden=16, ipdf_hidden=16, gn_groups=4,
+    conv_impl="lax",  # as the cpu and tiny presets: compiles ~40 % faster than im2col (test_model compares them)
 )
 Z_RANGE = (0.2, 1.0)
 

@@ -13,7 +13,7 @@ NB = Path(__file__).resolve().parents[1] / "experiments" / "notebooks" / "quicks
 def test_quickstart_notebook_executes(monkeypatch):
     nbformat = pytest.importorskip("nbformat")
     nbclient = pytest.importorskip("nbclient")
-    monkeypatch.setenv("SC6D_NB_STEPS", "300")
+    monkeypatch.setenv("SC6D_NB_STEPS", "100")  # the code path, not the accuracy: two points of the loss curve
     nb = nbformat.read(NB, as_version=4)
     client = nbclient.NotebookClient(nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(NB.parent)}})
     client.execute()

@@ -30,29 +30,30 @@ def _read_csv(path: Path) -> list[dict[str, str]]:
 
 @pytest.fixture(scope="module")
 def ablation_dir(tmp_path_factory) -> tuple[Path, str]:
-    """Tiny ablation with rows A0 and TTA: killed (whole process group) once A0 is finished, then
-    rerun to completion. Returns the sweep folder and the rerun's output."""
+    """Tiny ablation with rows A4 and TTA (two rows, one training: TTA evaluates A4's model with
+    --tta): killed (whole process group) once A4 is finished, then rerun to completion. Returns
+    the sweep folder and the rerun's output."""
     out = tmp_path_factory.mktemp("sweep") / "ablation"
-    cmd = [sys.executable, str(SWEEP), "ablation", "--out", str(out), "--budget", "tiny", "--rows", "A0,TTA"]
+    cmd = [sys.executable, str(SWEEP), "ablation", "--out", str(out), "--budget", "tiny", "--rows", "A4,TTA"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
-    first = out / "scores" / "A0_s0.json"
+    first = out / "scores" / "A4_s0.json"
     deadline = time.monotonic() + 300
     try:
         while not first.is_file():
             if proc.poll() is not None:
-                pytest.fail(f"sweep ended before A0 finished:\n{proc.stdout.read()}")
+                pytest.fail(f"sweep ended before A4 finished:\n{proc.stdout.read()}")
             if time.monotonic() > deadline:
-                pytest.fail("A0 did not finish within 300 s")
+                pytest.fail("A4 did not finish within 300 s")
             time.sleep(0.2)
-        time.sleep(1.0)  # let the next row's training start, so that the kill interrupts it
+        time.sleep(1.0)  # let the next row's prediction start, so that the kill interrupts it
     finally:
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait(timeout=30)
     killed_out = proc.stdout.read()
-    assert "A0 (z regression) seed 0: done" in killed_out
+    assert "A4 (+ PE map) seed 0: done" in killed_out
     assert not (out / "scores" / "TTA_s0.json").exists()
     mtime = first.stat().st_mtime_ns
-    res = _sweep("ablation", "--out", str(out), "--budget", "tiny", "--rows", "A0,TTA")
+    res = _sweep("ablation", "--out", str(out), "--budget", "tiny", "--rows", "A4,TTA")
     assert res.returncode == 0, res.stdout + res.stderr
     assert first.stat().st_mtime_ns == mtime  # the finished run was not redone
     return out, res.stdout
@@ -60,24 +61,24 @@ def ablation_dir(tmp_path_factory) -> tuple[Path, str]:
 
 def test_ablation_resumes_and_writes_tables(ablation_dir):
     out, log = ablation_dir
-    assert "[ablation 1/2] A0 (z regression) seed 0: skipped (finished earlier" in log
+    assert "[ablation 1/2] A4 (+ PE map) seed 0: skipped (finished earlier" in log
+    assert "[ablation 2/2] TTA (+ TTA (ours)) seed 0: training A4_s0 finished earlier" in log  # shared, trained once
     assert "[ablation 2/2] TTA (+ TTA (ours)) seed 0: done" in log
+    assert sorted(p.name for p in (out / "runs").iterdir()) == ["A4_s0"]
     # committed, the folder keeps its results and tables, not the runs, data and logs
     ignored = (out / ".gitignore").read_text().split()
     assert {"/runs/", "/models/", "/dataset/", "/logs/", "/figures/"} <= set(ignored)
     assert not {"/scores/", "/results/"} & set(ignored)
-    # the rows map to the intended training configs; TTA evaluates the A4 training with --tta
-    a0 = json.loads((out / "runs" / "A0_s0" / "config.json").read_text())
-    assert (a0["loss"]["z_mode"], a0["loss"]["z_loss"], a0["model"]["use_pe"]) == ("regression", "ce", False)
+    # TTA evaluates the A4 training with --tta
     a4 = json.loads((out / "runs" / "A4_s0" / "config.json").read_text())
     assert (a4["loss"]["z_mode"], a4["loss"]["z_loss"], a4["model"]["use_pe"], a4["model"]["rot_head"]) == (
         "expectation", "focal", True, "so3")
-    assert a0["seed"] == a4["seed"] == 0 and a0["stream"]["obj_ids"] == [1, 2]
+    assert a4["seed"] == 0 and a4["stream"]["obj_ids"] == [1, 2] and a4["steps"] == 12
     assert "--tta" in (out / "logs" / "TTA_s0.predict.log").read_text().splitlines()[0]
-    assert "--tta" not in (out / "logs" / "A0_s0.predict.log").read_text().splitlines()[0]
+    assert "--tta" not in (out / "logs" / "A4_s0.predict.log").read_text().splitlines()[0]
     # tables agree with the scores JSONs
     runs = _read_csv(out / "runs.csv")
-    assert [r["row"] for r in runs] == ["A0", "TTA"]
+    assert [r["row"] for r in runs] == ["A4", "TTA"]
     agg = {r["row"]: r for r in _read_csv(out / "ablation.csv")}
     for r in runs:
         sc = json.loads((out / "scores" / f"{r['row']}_s0.json").read_text())
@@ -90,18 +91,20 @@ def test_ablation_resumes_and_writes_tables(ablation_dir):
         assert float(r["rot_deg"]) == pytest.approx(sc["breakdown"]["overall"]["rot_median_deg"], abs=1e-3)
         assert float(r["depth_pct"]) == pytest.approx(100 * sc["breakdown"]["overall"]["depth_rel_median"], abs=1e-3)
     md = (out / "ablation.md").read_text()
-    assert "| A0 | z regression | 0 |" in md and "| TTA | + TTA (ours) | 0 |" in md
+    assert "| A4 | + PE map | 0 |" in md and "| TTA | + TTA (ours) | 0 |" in md
     assert "| A1 - A0 | z classification over regression | 0 | +0.049 | - | - | - |" in md
+    diff = float(runs[1]["AR"]) - float(runs[0]["AR"])
+    assert f"| TTA - A4 | TTA | 1 | +0.010 | {diff:+.3f} ± 0.000 | - |" in md  # one seed: no spread yet
     assert [d["delta"] for d in _read_csv(out / "deltas.csv")][-1] == "TTA - IPDF"
     assert (out / "ablation.png").read_bytes()[:8] == PNG
-    figs = sorted((out / "figures" / "A0_s0").glob("*.png"))
+    figs = sorted((out / "figures" / "A4_s0").glob("*.png"))
     assert figs and all(p.read_bytes()[:8] == PNG for p in figs)
 
 
 def test_ablation_rerun_of_a_finished_sweep_redoes_nothing(ablation_dir):
     out, _ = ablation_dir
     before = {p: p.stat().st_mtime_ns for p in (out / "scores").glob("*.json")}
-    res = _sweep("ablation", "--out", str(out), "--budget", "tiny", "--rows", "A0,TTA", timeout=120)
+    res = _sweep("ablation", "--out", str(out), "--budget", "tiny", "--rows", "A4,TTA", timeout=120)
     assert res.returncode == 0, res.stderr
     assert res.stdout.count("skipped (finished earlier") == 2
     assert {p: p.stat().st_mtime_ns for p in (out / "scores").glob("*.json")} == before
@@ -127,17 +130,17 @@ def test_eval_figures_writes_pngs(ablation_dir, tmp_path):
 
     out, _ = ablation_dir
     figs = tmp_path / "figs"
-    assert main(["--dataset", str(out / "dataset"), "--results", str(out / "results" / "A0_s0.csv"),
+    assert main(["--dataset", str(out / "dataset"), "--results", str(out / "results" / "A4_s0.csv"),
                  "--out", str(tmp_path / "s.json"), "--no-progress", "--figures", str(figs),
-                 "--run", str(out / "runs" / "A0_s0")]) == 0
+                 "--run", str(out / "runs" / "A4_s0")]) == 0
     names = sorted(p.name for p in figs.iterdir())
     assert "ar_per_object.png" in names
     assert any(n.startswith("poses_") for n in names) and any(n.startswith("rotdist_") for n in names)
     for p in figs.iterdir():
         assert p.read_bytes()[:8] == PNG and p.stat().st_size > 1000
     with pytest.raises(ValueError, match="only used with --figures"):
-        main(["--dataset", str(out / "dataset"), "--results", str(out / "results" / "A0_s0.csv"),
-              "--out", str(tmp_path / "s2.json"), "--run", str(out / "runs" / "A0_s0")])
+        main(["--dataset", str(out / "dataset"), "--results", str(out / "results" / "A4_s0.csv"),
+              "--out", str(tmp_path / "s2.json"), "--run", str(out / "runs" / "A4_s0")])
 
 
 def test_sweep_argument_errors(tmp_path):
