@@ -134,6 +134,8 @@ def test_model_config_validation():
         ModelConfig(conv_impl="cudnn")
     with pytest.raises(ValueError, match="n_objects"):
         ModelConfig(n_objects=0)
+    with pytest.raises(ValueError, match="pose_downsample"):
+        ModelConfig(pose_downsample=3)
     assert hash(TINY) == hash(dataclasses.replace(TINY))
 
 
@@ -147,6 +149,7 @@ SWITCHES = [
     {"conv_impl": "im2col"},
     {"n_objects": 1},
     {"crop_size": 48},
+    {"pose_downsample": 1, "crop_size": 64},
 ] + [{"backbone": name} for name in BACKBONES]
 
 
@@ -165,6 +168,20 @@ def test_output_shapes_for_every_switch(switch):
     for cands in (jax.ShapeDtypeStruct((7, 3, 3), jnp.float32), jax.ShapeDtypeStruct((4, 7, 3, 3), jnp.float32)):
         lg = jax.eval_shape(lambda p, o, r: rotation_logits(p, cfg, o, r, obj), params, out, cands)
         assert lg.shape == (4, 7)
+
+
+def test_pose_downsample_1_gives_the_heads_a_map_twice_the_size():
+    """64-px crops: features 16x16; the heads' conv reads 8x8 -> 4x4 instead of 4x4 -> 2x2, so the
+    flattened input of each head's FC layer is four times larger; the other layers are the same."""
+    base = dataclasses.replace(TINY, crop_size=64)
+    wide = dataclasses.replace(base, pose_downsample=1)
+    p2, p1 = init(jax.random.key(0), base), init(jax.random.key(0), wide)
+    pw = base.pose_width
+    assert p2["pose_decoder"]["rot"]["fc"]["w"].shape[0] == 2 * 2 * pw
+    assert p1["pose_decoder"]["rot"]["fc"]["w"].shape[0] == 4 * 4 * pw
+    for k in ("down1", "down2", "dilated"):
+        for a, b in zip(jax.tree.leaves(p2["pose_decoder"][k]), jax.tree.leaves(p1["pose_decoder"][k])):
+            np.testing.assert_array_equal(a, b)
 
 
 def test_paper_model_size():

@@ -181,8 +181,8 @@ def test_tiny_preset_learns_rotation_of_a_builtin_object(tmp_path, models_dir):
 
 def test_tiny_preset_on_the_crop_stream_loss_falls_and_is_deterministic(tmp_path, models_dir):
     """The real crop stream (occluders, clutter, augmentation): the loss falls; same seed, same bits."""
-    steps = 120
-    cfg = preset("tiny", steps=steps, log_every=20, checkpoint_every=steps, val_crops=0)
+    steps = 60  # the loss falls 14.3 -> 12.6 (measured); the run costs its compile more than its steps
+    cfg = preset("tiny", steps=steps, log_every=10, checkpoint_every=steps, val_crops=0)
     cfg = cfg.replace(stream=cfg.stream.__class__(batch_size=cfg.stream.batch_size, obj_ids=(ASYM_OBJ,)))
     params = train(cfg, models_dir, tmp_path / "a", progress=False, verbose=False)
     m = [json.loads(x) for x in (tmp_path / "a" / "metrics.jsonl").read_text().splitlines()]

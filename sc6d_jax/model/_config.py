@@ -55,6 +55,11 @@ class ModelConfig:
       (False = paper: the mask is only concatenated).
     - z_size_input: give the depth head the apparent size of the predicted visible mask (log
       area, log spread in x and y; ``_pose_decoder.mask_size_features``) next to its features.
+    - pose_downsample: stride-2 convs of the pose decoder before its dilated block (2, paper:
+      the block runs at S/16 and the heads see S/32). 1 runs the block at S/8, the heads at
+      S/16 (the second conv keeps its weights, with stride 1): for a 64-px crop the heads read
+      a 4x4 map instead of 2x2, and the dilations 2-7 span that map as they span the paper's
+      16x16 at 256 px.
     """
 
     n_objects: int = 1
@@ -80,6 +85,7 @@ class ModelConfig:
     gn_groups: int = 32
     mask_gate: bool = False
     z_size_input: bool = False
+    pose_downsample: int = 2
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:
@@ -97,6 +103,8 @@ class ModelConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name} must be a positive int, got {v!r}")
+        if self.pose_downsample not in (1, 2):
+            raise ValueError(f"pose_downsample must be 1 or 2, got {self.pose_downsample!r}")
         if self.decoder_width < 0 or self.ipdf_pe_freqs < 0 or self.so3_pe_freqs < 0:
             raise ValueError("decoder_width, ipdf_pe_freqs and so3_pe_freqs must be >= 0")
 

@@ -1,6 +1,7 @@
 """Pose decoder (paper Fig. "pose decoder", REFERENCE section 1), shared by all objects.
 
-features (S/4, feat_dim) ++ sigmoid(mask) -> 3x3/2 conv -> 3x3/2 conv (pose_width, S/16)
+features (S/4, feat_dim) ++ sigmoid(mask) -> 3x3/2 conv -> 3x3/2 conv (pose_width, S/16; with
+``pose_downsample=1`` the second conv has stride 1 and what follows runs at twice the size)
 -> [itself, six 3x3 convs with dilation 2..7, global average pool broadcast] (8 * pose_width)
 -> three heads, each 3x3/2 conv (pose_width) + flatten + FC head_hidden + FC out:
 rotation embedding (emb_dim), delta_xy (2), z logits (n_z_bins).
@@ -24,7 +25,7 @@ DILATIONS = (2, 3, 4, 5, 6, 7)
 
 def _flat_size(cfg: ModelConfig) -> int:
     s = cfg.mask_size
-    for _ in range(3):
+    for _ in range(cfg.pose_downsample + 1):
         s = conv_output_size(s, 3, 2, 1)
     return s * s * cfg.pose_width
 
@@ -79,7 +80,7 @@ def pose_decoder(
     """Returns (raw rotation feature (B,emb_dim), delta_xy (B,2), z logits (B,n_z_bins))."""
     x = jnp.concatenate([feat, jax.nn.sigmoid(mask_logit)[..., None]], axis=-1)
     x = conv_gn_relu(x, params["down1"], cfg, stride=2)
-    x = conv_gn_relu(x, params["down2"], cfg, stride=2)
+    x = conv_gn_relu(x, params["down2"], cfg, stride=2 if cfg.pose_downsample == 2 else 1)
     branches = [x]
     for d, p in zip(DILATIONS, params["dilated"]):
         branches.append(conv_gn_relu(x, p, cfg, dilation=d))
