@@ -312,3 +312,33 @@ def test_turn_negatives_are_the_ground_truth_turned_about_the_object_axes(params
     np.testing.assert_allclose(np.asarray(logits[:, :-9]), np.asarray(base), rtol=1e-6)
     with pytest.raises(ValueError, match="turn_negatives"):
         LossConfig(turn_negatives="yes")
+
+
+def test_axis_negatives_turn_the_ground_truth_about_one_object_axis(params):
+    from sc6d_jax.geometry import geodesic_angle
+    from sc6d_jax.model import apply, axis_ring_deltas, rotation_logits
+
+    d = np.asarray(axis_ring_deltas(jax.random.key(0), (4, 60), 30.0), np.float64)
+    assert d.shape == (4, 60, 3, 3)
+    np.testing.assert_allclose(d @ np.swapaxes(d, -1, -2), np.broadcast_to(np.eye(3), d.shape), atol=1e-5)
+    np.testing.assert_allclose(np.linalg.det(d), 1.0, atol=1e-5)
+    fixed = np.abs(np.einsum("...ii->...i", d) - 1.0) < 1e-5  # the axis it turns about is left alone
+    assert np.all(fixed.sum(-1) >= 1) and set(np.argmax(fixed, -1).ravel().tolist()) == {0, 1, 2}
+    ang = np.degrees(np.asarray(geodesic_angle(jnp.asarray(d, jnp.float32), jnp.broadcast_to(jnp.eye(3), d.shape))))
+    assert ang.min() >= 30.0 - 1e-2 and ang.max() <= 180.0 + 1e-3 and ang.max() > 150.0
+    # M more columns at the end, R_gt @ delta scored as any candidate; the rest as without them
+    batch = _batch(CFG, b=3)
+    R, oi = jnp.asarray(batch["R_allo"]), jnp.asarray(batch["obj_idx"])
+    lcfg = LossConfig(n_negatives=6, rebase_negatives=False, n_axis_negatives=5)
+    out = jax.jit(apply, static_argnums=1)(params, CFG, batch["rgb"], batch["pe"], batch["obj_idx"])
+    cand = jax.jit(candidate_logits, static_argnums=(1, 2))
+    logits = cand(params, CFG, lcfg, out, R, oi, jax.random.key(2))
+    assert logits.shape == (3, 1 + 6 + 5)
+    ring = axis_ring_deltas(jax.random.fold_in(jax.random.key(2), 2), (3, 5), 30.0)
+    want = rotation_logits(params, CFG, out, R[:, None] @ ring, oi, lcfg.tau)
+    np.testing.assert_allclose(np.asarray(logits[:, -5:]), np.asarray(want), rtol=1e-5, atol=1e-5)
+    base = cand(params, CFG, dataclasses.replace(lcfg, n_axis_negatives=0), out, R, oi, jax.random.key(2))
+    np.testing.assert_allclose(np.asarray(logits[:, :-5]), np.asarray(base), rtol=1e-6)
+    for bad in ({"n_axis_negatives": -1}, {"axis_min_deg": 0.0}, {"axis_min_deg": 180.0}):
+        with pytest.raises(ValueError, match="axis"):
+            LossConfig(**bad)

@@ -77,6 +77,10 @@ class LossConfig:
       bar), which random negatives almost never hit. No symmetry labels: for an exactly
       symmetric object the turned pose looks the same and only costs a constant floor of the
       loss (False = off, paper).
+    - n_axis_negatives: M more negatives per sample on the rings of the quarter turns: its
+      ground truth turned about one of the object's own axes (drawn per negative) by an angle
+      uniform in [axis_min_deg, 360 - axis_min_deg] (:func:`axis_ring_deltas`): the angle about a
+      thin object's axis at every value, not only at the quarter turns. 0 = off (paper).
     - per_sample_negatives: draw an independent random roll per sample (vmapped over the
       batch) instead of one set of deltas shared by the batch.
     - w_rot 1, w_xy 10, w_z 1, w_mask 1: loss weights.
@@ -114,6 +118,8 @@ class LossConfig:
     w_dense: float = 0.0
     teacher_gate: bool = False
     turn_negatives: bool = False
+    n_axis_negatives: int = 0
+    axis_min_deg: float = 30.0
 
     def __post_init__(self) -> None:
         if self.z_mode not in Z_MODES:
@@ -132,6 +138,10 @@ class LossConfig:
             raise ValueError(
                 f"need 0 <= local_min_deg <= local_max_deg <= 180, got {self.local_min_deg}, {self.local_max_deg}"
             )
+        if not isinstance(self.n_axis_negatives, int) or self.n_axis_negatives < 0:
+            raise ValueError(f"n_axis_negatives must be a non-negative int, got {self.n_axis_negatives!r}")
+        if not 0 < self.axis_min_deg < 180:
+            raise ValueError(f"axis_min_deg must be in (0, 180), got {self.axis_min_deg}")
         if not isinstance(self.turn_negatives, bool):
             raise ValueError(f"turn_negatives must be true or false, got {self.turn_negatives!r}")
         if self.mask_downsample not in MASK_DOWNSAMPLE:
@@ -261,6 +271,22 @@ def local_rotation_deltas(key: jax.Array, shape: tuple[int, ...], min_deg: float
     return jnp.eye(3) + s * Kx + (1.0 - c) * (Kx @ Kx)
 
 
+def axis_ring_deltas(key: jax.Array, shape: tuple[int, ...], min_deg: float) -> jax.Array:
+    """Rotations (*shape, 3, 3) about the object's x, y or z axis (uniform per rotation) by an
+    angle uniform in [min_deg, 360 - min_deg]; ``R_gt @ delta`` turns the ground truth in the
+    object's frame (as :func:`axis_turns`, at every angle)."""
+    k1, k2 = jax.random.split(key)
+    which = jax.random.randint(k1, shape, 0, 3)
+    ang = jnp.deg2rad(jax.random.uniform(k2, shape, minval=min_deg, maxval=360.0 - min_deg))
+    c, s = jnp.cos(ang), jnp.sin(ang)
+    one, zero = jnp.ones_like(ang), jnp.zeros_like(ang)
+    rx = jnp.stack([jnp.stack([one, zero, zero], -1), jnp.stack([zero, c, -s], -1), jnp.stack([zero, s, c], -1)], -2)
+    ry = jnp.stack([jnp.stack([c, zero, s], -1), jnp.stack([zero, one, zero], -1), jnp.stack([-s, zero, c], -1)], -2)
+    rz = jnp.stack([jnp.stack([c, -s, zero], -1), jnp.stack([s, c, zero], -1), jnp.stack([zero, zero, one], -1)], -2)
+    w = which[..., None, None]
+    return jnp.where(w == 0, rx, jnp.where(w == 1, ry, rz))
+
+
 def axis_turns() -> jax.Array:
     """(9, 3, 3): the quarter, half and three-quarter turns about the object's own x, y and z
     axes. R_gt @ turn is the ground truth turned in the object's frame, the pose a nearly
@@ -278,7 +304,7 @@ def candidate_logits(
     obj_idx: jax.Array,
     key: jax.Array,
 ) -> jax.Array:
-    """(B, Q+1[+M][+9]) rotation logits with the ground truth at index 0 (negatives per lcfg)."""
+    """(B, Q+1[+M][+9][+M_axis]) rotation logits with the ground truth at index 0 (negatives per lcfg)."""
     b = R_gt.shape[0]
     q = lcfg.n_negatives
     if lcfg.per_sample_negatives:
@@ -302,6 +328,9 @@ def candidate_logits(
     if lcfg.turn_negatives:
         turned = R_gt[:, None] @ axis_turns()  # (B,9,3,3)
         parts.append(rotation_logits(params, mcfg, out, turned, obj_idx, lcfg.tau))
+    if lcfg.n_axis_negatives:
+        ring = axis_ring_deltas(jax.random.fold_in(key, 2), (b, lcfg.n_axis_negatives), lcfg.axis_min_deg)
+        parts.append(rotation_logits(params, mcfg, out, R_gt[:, None] @ ring, obj_idx, lcfg.tau))  # (B,M)
     return jnp.concatenate(parts, axis=1) if len(parts) > 1 else parts[0]
 
 
