@@ -100,3 +100,50 @@ def test_command_on_a_checkpoint_writes_tables_and_a_figure(models, tmp_path):
     bad = subprocess.run([sys.executable, str(REPO / "experiments" / "error_anatomy.py"), "--run", str(run),
                           "--models", str(tmp_path), "--out", str(tmp_path / "x")], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "models_info.json" in bad.stderr and not (tmp_path / "x").exists()
+
+
+# ----------------------------------------------------------------------------- ring_profile.py
+import ring_profile  # noqa: E402
+
+
+def test_ring_rows_of_hand_made_profiles():
+    """Object 3 about z: an encoder that gives the ring one embedding and crops whose scores peak a
+    half turn away; about x: peaks at the ground truth, a drop of 5 logits."""
+    theta = np.arange(0.0, 360.0, 5.0)
+    n = 4
+    peak = lambda c: np.tile(-np.abs((theta - c + 180.0) % 360.0 - 180.0) / 36.0, (n, 1))  # noqa: E731
+    profiles = {(3, "z"): {"theta": theta, "enc_cos": np.ones_like(theta), "score": peak(180.0)},
+                (3, "x"): {"theta": theta, "enc_cos": np.cos(np.radians(theta)), "score": peak(0.0)}}
+    z, x = ring_profile.ring_rows(profiles)
+    assert (z["obj_id"], z["axis"], z["n"], x["axis"]) == (3, "z", n, "x")
+    assert z["enc_min_cos"] == 1.0 and (z["at_gt"], z["at_90"], z["at_180"], z["at_270"]) == (0.0, 0.0, 1.0, 0.0)
+    assert z["score_range"] == pytest.approx(0.0)  # the ground truth is the worst of its ring
+    assert x["enc_min_cos"] == pytest.approx(-1.0) and x["at_gt"] == 1.0 and x["at_180"] == 0.0
+    assert x["score_range"] == pytest.approx(5.0)
+
+
+def test_ring_profile_command_on_a_checkpoint(models, tmp_path):
+    from sc6d_jax.model import init
+    from sc6d_jax.train import StreamSettings, preset, save_checkpoint
+
+    cfg = preset("tiny")
+    cfg = cfg.replace(model=dataclasses.replace(cfg.model, n_objects=2), stream=StreamSettings(batch_size=8, obj_ids=(1, 2)),
+                      z_range=(300.0, 3000.0))
+    run = tmp_path / "run"
+    save_checkpoint(run, 5, init(jax.random.PRNGKey(0), cfg.model), {}, np.zeros(2, np.uint32), cfg.to_dict(),
+                    extra_meta={"models_dir": None})
+    (run / "config.json").write_text(json.dumps(cfg.to_dict()))
+    out = tmp_path / "rings"
+    assert ring_profile.main(["--run", str(run), "--models", str(models), "--out", str(out), "--crops", "10"]) == 0
+    with open(out / "rings.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    objs = sorted({r["obj_id"] for r in rows})
+    assert set(objs) <= {"1", "2"} and [r["axis"] for r in rows] == ["x", "y", "z"] * len(objs)
+    assert sum(int(r["n"]) for r in rows if r["axis"] == "x") == 10
+    for r in rows:
+        assert -1.0 <= float(r["enc_min_cos"]) <= 1.0 and float(r["score_range"]) >= 0.0  # the best is at least g.t.
+        assert float(r["at_gt"]) + float(r["at_180"]) <= 1.0
+    assert (out / "rings.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert json.loads((out / "rings.json").read_text())["step"] == 5
+    assert ring_profile.main(["--run", str(run), "--models", str(tmp_path), "--out", str(tmp_path / "x")]) == 2
+    assert not (tmp_path / "x").exists()
