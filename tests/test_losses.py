@@ -342,3 +342,34 @@ def test_axis_negatives_turn_the_ground_truth_about_one_object_axis(params):
     for bad in ({"n_axis_negatives": -1}, {"axis_min_deg": 0.0}, {"axis_min_deg": 180.0}):
         with pytest.raises(ValueError, match="axis"):
             LossConfig(**bad)
+
+
+def test_rotation_readout_reads_the_embedding_per_object_and_its_loss():
+    """model.rot_readout adds a per-object linear map of the unit embedding to 6 numbers (the
+    other parameters are drawn as without it); loss.w_rot_readout is the mean squared distance
+    to the ground truth's first two columns."""
+    from sc6d_jax.model import apply
+
+    mcfg = dataclasses.replace(CFG, rot_readout=True)
+    p0, p = init(jax.random.key(0), CFG), init(jax.random.key(0), mcfg)
+    assert set(p) == set(p0) | {"rot_readout"} and p["rot_readout"]["w"].shape == (CFG.n_objects, CFG.emb_dim, 6)
+    for a, b in zip(jax.tree.leaves(p0), jax.tree.leaves({k: v for k, v in p.items() if k != "rot_readout"})):
+        np.testing.assert_array_equal(a, b)
+    batch = _batch(mcfg)
+    out = jax.jit(apply, static_argnums=1)(p, mcfg, batch["rgb"], batch["pe"], batch["obj_idx"])
+    w, b = np.asarray(p["rot_readout"]["w"]), np.asarray(p["rot_readout"]["b"])
+    emb = np.asarray(out["rot_emb"])
+    want = np.stack([emb[i] @ w[o] + b[o] for i, o in enumerate(batch["obj_idx"])])
+    np.testing.assert_allclose(np.asarray(out["rot_6d"]), want, rtol=1e-5, atol=1e-6)
+    lcfg = LossConfig(n_negatives=8, w_rot_readout=0.5)
+    f = jax.jit(loss_fn, static_argnums=(1, 2, 5))
+    loss, aux = f(p, mcfg, lcfg, batch, jax.random.key(1), Z_RANGE)
+    R = np.asarray(batch["R_allo"])
+    target = np.concatenate([R[:, :, 0], R[:, :, 1]], axis=1)
+    np.testing.assert_allclose(float(aux["loss_rot_readout"]), np.mean(np.sum((want - target) ** 2, -1)), rtol=1e-4)
+    rest = lcfg.w_rot * aux["loss_rot"] + lcfg.w_xy * aux["loss_xy"] + lcfg.w_z * aux["loss_z"] + lcfg.w_mask * aux["loss_mask"]
+    np.testing.assert_allclose(float(loss), float(rest + 0.5 * aux["loss_rot_readout"]), rtol=1e-5)
+    with pytest.raises(ValueError, match="model.rot_readout=True"):
+        loss_fn(p0, CFG, lcfg, batch, jax.random.key(1), Z_RANGE)
+    with pytest.raises(ValueError, match="w_rot_readout"):
+        LossConfig(w_rot_readout=-1.0)

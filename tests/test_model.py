@@ -150,6 +150,7 @@ SWITCHES = [
     {"n_objects": 1},
     {"crop_size": 48},
     {"pose_downsample": 1, "crop_size": 64},
+    {"rot_readout": True},
 ] + [{"backbone": name} for name in BACKBONES]
 
 

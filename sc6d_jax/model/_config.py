@@ -55,6 +55,10 @@ class ModelConfig:
       (False = paper: the mask is only concatenated).
     - z_size_input: give the depth head the apparent size of the predicted visible mask (log
       area, log spread in x and y; ``_pose_decoder.mask_size_features``) next to its features.
+    - rot_readout: a per-object linear map from the unit rotation embedding to the first two
+      columns of the allocentric rotation (``out["rot_6d"]`` (B,6)), trained by
+      ``LossConfig.w_rot_readout``: the embedding itself has to carry the angle wherever the
+      crop shows it. Not used at inference.
     - pose_downsample: stride-2 convs of the pose decoder before its dilated block (2, paper:
       the block runs at S/16 and the heads see S/32). 1 runs the block at S/8, the heads at
       S/16 (the second conv keeps its weights, with stride 1): for a 64-px crop the heads read
@@ -86,6 +90,7 @@ class ModelConfig:
     mask_gate: bool = False
     z_size_input: bool = False
     pose_downsample: int = 2
+    rot_readout: bool = False
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:

@@ -81,6 +81,14 @@ class LossConfig:
       ground truth turned about one of the object's own axes (drawn per negative) by an angle
       uniform in [axis_min_deg, 360 - axis_min_deg] (:func:`axis_ring_deltas`): the angle about a
       thin object's axis at every value, not only at the quarter turns. 0 = off (paper).
+    - w_rot_readout: weight of an L2 loss between the model's rotation readout
+      (``ModelConfig.rot_readout``: a linear map of the rotation embedding) and the first two
+      columns of the allocentric ground truth. InfoNCE has a fixed point where the SO(3)
+      encoder gives a whole ring of turns about an object axis one embedding and the image
+      embedding ignores the angle (each side's gradient along the ring vanishes while the other
+      is flat): a nearly symmetric object (a dumbbell about its bar) stays there. The readout
+      asks the image embedding for the angle directly. No symmetry labels: for an exactly
+      symmetric object the target is ambiguous and the readout learns its mean (0 = off, paper).
     - per_sample_negatives: draw an independent random roll per sample (vmapped over the
       batch) instead of one set of deltas shared by the batch.
     - w_rot 1, w_xy 10, w_z 1, w_mask 1: loss weights.
@@ -120,6 +128,7 @@ class LossConfig:
     turn_negatives: bool = False
     n_axis_negatives: int = 0
     axis_min_deg: float = 30.0
+    w_rot_readout: float = 0.0
 
     def __post_init__(self) -> None:
         if self.z_mode not in Z_MODES:
@@ -150,7 +159,8 @@ class LossConfig:
             raise ValueError(f"tau must be > 0, got {self.tau}")
         if not isinstance(self.n_negatives, int) or self.n_negatives < 1:
             raise ValueError(f"n_negatives must be a positive int, got {self.n_negatives!r}")
-        for name in ("w_rot", "w_xy", "w_z", "w_mask", "w_z_l1", "w_dense", "focal_alpha", "focal_gamma"):
+        for name in ("w_rot", "w_xy", "w_z", "w_mask", "w_z_l1", "w_dense", "w_rot_readout", "focal_alpha",
+                     "focal_gamma"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 
@@ -373,6 +383,8 @@ def loss_fn(
         raise ValueError("z_norm='focal' needs the image intrinsics K (batch['K'])")
     if lcfg.w_dense > 0:
         _check_dense(mcfg, batch)
+    if lcfg.w_rot_readout > 0 and not mcfg.rot_readout:
+        raise ValueError("loss.w_rot_readout > 0 needs a model with model.rot_readout=True")
     d_lo, d_hi = z_range
     obj_idx = jnp.asarray(batch["obj_idx"], jnp.int32)
     target = downsample_mask(jnp.asarray(batch["mask_visib"]), 4, lcfg.mask_downsample)
@@ -417,6 +429,10 @@ def loss_fn(
     if lcfg.w_dense > 0:
         extra["loss_dense"] = dense_loss(out, batch)
         loss = loss + lcfg.w_dense * extra["loss_dense"]
+    if lcfg.w_rot_readout > 0:
+        want = jnp.swapaxes(R_gt[:, :, :2], 1, 2).reshape(R_gt.shape[0], 6)  # the two columns, one after the other
+        extra["loss_rot_readout"] = jnp.mean(jnp.sum(jnp.square(out["rot_6d"] - want), axis=-1))
+        loss = loss + lcfg.w_rot_readout * extra["loss_rot_readout"]
     aux = {
         "loss": loss,
         "loss_rot": loss_rot,

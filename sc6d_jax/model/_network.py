@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._config import ModelConfig
 from ._layers import dense, init_dense, make_rng, split
@@ -36,6 +37,10 @@ def init(key: jax.Array, cfg: ModelConfig) -> dict:
     }
     if cfg.dense_head:  # a fifth child of the generator: the other parts are drawn as without it
         params["dense_head"] = init_dense(split(rng, 1)[0], cfg.feat_dim, N_DENSE, scale=1.0)
+    if cfg.rot_readout:  # the next child: the parts above are drawn as without it
+        ks = split(split(rng, 1)[0], cfg.n_objects)
+        heads = [init_dense(k, cfg.emb_dim, 6, scale=1.0) for k in ks]
+        params["rot_readout"] = {"w": np.stack([h["w"] for h in heads]), "b": np.stack([h["b"] for h in heads])}
     return jax.tree.map(jnp.asarray, params)
 
 
@@ -73,7 +78,7 @@ def apply(
 
     Returns {'rot_emb' (B,emb_dim) unit-norm image embedding, 'delta_xy' (B,2),
     'z_logits' (B,n_z_bins), 'mask_logit' (B,S/4,S/4)}, and 'dense' (B,S/4,S/4,4) with
-    cfg.dense_head.
+    cfg.dense_head, 'rot_6d' (B,6) with cfg.rot_readout.
     """
     _check_inputs(cfg, rgb, pe, obj_idx)
     obj_idx = jnp.asarray(obj_idx, jnp.int32)
@@ -92,7 +97,11 @@ def apply(
             gate = jnp.where(jnp.asarray(on)[:, None, None], jnp.asarray(mask, gate.dtype), gate)
         feat = feat * gate[..., None]
     rot, dxy, zl = pose_decoder(params["pose_decoder"], cfg, feat, mask_logit)
-    return {"rot_emb": _l2n(rot), "delta_xy": dxy, "z_logits": zl, "mask_logit": mask_logit, **extra}
+    emb = _l2n(rot)
+    if cfg.rot_readout:
+        ro = params["rot_readout"]
+        extra["rot_6d"] = jnp.einsum("be,bes->bs", emb, ro["w"][obj_idx]) + ro["b"][obj_idx]
+    return {"rot_emb": emb, "delta_xy": dxy, "z_logits": zl, "mask_logit": mask_logit, **extra}
 
 
 def count_params(params: dict) -> int:
