@@ -1,7 +1,7 @@
 """Does the network tell a turn about each of the object's own axes? The rings of the ground truth.
 
     python experiments/ring_profile.py --run runs/dumbbell --models runs/objects/models --out runs/rings \\
-        [--step 3000] [--crops 128] [--plain] [--raw]
+        [--step 3000] [--crops 128] [--plain] [--raw] [--gallery 13,8,9,12]
 
 For each validation crop of the run (its own seed, as ``error_anatomy.py``) and each object axis
 a in {x, y, z}, the ground truth (allocentric) is turned about a by every angle theta in steps of
@@ -18,8 +18,10 @@ a in {x, y, z}, the ground truth (allocentric) is turned about a by every angle 
 Per object and axis it prints and writes (``OUT/rings.csv``, ``OUT/rings.json``) the encoder's
 smallest mean self-similarity along the ring (``enc_min_cos``), the peak shares, and the mean
 score drop from the ground truth to the worst angle (``score_range``, in logits at tau = 0.1);
-``OUT/rings.png`` draws the mean self-similarity and score profiles per object and axis. IPDF
-heads have no rotation embedding: refused.
+``OUT/rings.png`` draws the mean self-similarity and score profiles per object and axis;
+``--gallery 13,8`` also draws ``OUT/turns.png``, those objects turned about their z axis by
+quarter turns at the run's crop size (is the turn visible at all?). IPDF heads have no rotation
+embedding: refused.
 """
 
 from __future__ import annotations
@@ -109,6 +111,41 @@ def figure(profiles: dict, path: Path) -> Path:
     return save_figure(fig, path)
 
 
+def turn_gallery(models: Path, obj_ids: list[int], path: Path, size: int = 64) -> Path:
+    """Each object rendered at one tilted view and turned about its own z axis by 0, 90, 180 and
+    270 degrees, at ``size`` pixels (the crop the network sees, without clutter): whether the
+    turn is visible at all."""
+    from sc6d_jax.bop import load_models_info, model_path
+    from sc6d_jax.geometry import rot_x, rot_z
+    from sc6d_jax.render import Renderer, load_mesh
+    from sc6d_jax.viz import save_figure
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    info = load_models_info(models)
+    K = np.array([[60.0, 0, (size - 1) / 2], [0, 60.0, (size - 1) / 2], [0, 0, 1]])
+    R0 = np.asarray(rot_x(np.radians(70.0))) @ np.asarray(rot_z(np.radians(20.0)))
+    fig, axes = plt.subplots(len(obj_ids), 4, figsize=(6, 1.6 * len(obj_ids)), squeeze=False)
+    for i, oid in enumerate(obj_ids):
+        dist = 60.0 * info[oid].diameter / (0.75 * size)
+        r = Renderer({oid: load_mesh(model_path(models, oid))}, size, size)
+        try:
+            for j in range(4):
+                R = R0 @ np.asarray(rot_z(np.radians(90.0 * j)))
+                axes[i, j].imshow(r.render([(oid, R, np.array([0.0, 0.0, dist]))], K, depth=False).rgb)
+                axes[i, j].set_xticks([])
+                axes[i, j].set_yticks([])
+                if i == 0:
+                    axes[i, j].set_title(f"+{90 * j} deg about z", fontsize=8)
+        finally:
+            r.close()
+        axes[i, 0].set_ylabel(f"object {oid}", fontsize=8)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run", required=True, type=Path, help="a training run's directory")
@@ -118,6 +155,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--crops", type=int, default=128, help="validation crops (default 128)")
     p.add_argument("--plain", action="store_true", help="plain backgrounds and no occluders instead of the run's stream")
     p.add_argument("--raw", action="store_true", help="the raw parameters, not their moving average")
+    p.add_argument("--gallery", default=None, help="comma-separated object ids: also draw OUT/turns.png, each "
+                   "object turned about its z axis by quarter turns at the run's crop size")
     a = p.parse_args(argv)
 
     def body() -> int:
@@ -146,6 +185,8 @@ def main(argv: list[str] | None = None) -> int:
         atomic_write_text(a.out / "rings.json", json.dumps(
             {"run": str(a.run), "step": step, "raw": a.raw, "plain": a.plain, "rows": rows}, indent=1))
         figure(profiles, a.out / "rings.png")
+        if a.gallery:
+            turn_gallery(a.models, [int(x) for x in a.gallery.split(",")], a.out / "turns.png", cfg.model.crop_size)
         print(f"step {step}: obj axis  enc_min_cos  peak at g.t. / 90 / 180 / 270 deg  score range")
         for r in rows:
             print(f"{r['obj_id']:>12d}    {r['axis']}  {r['enc_min_cos']:10.2f}    {r['at_gt']:.2f} / {r['at_90']:.2f} / "

@@ -134,7 +134,9 @@ def test_ring_profile_command_on_a_checkpoint(models, tmp_path):
                     extra_meta={"models_dir": None})
     (run / "config.json").write_text(json.dumps(cfg.to_dict()))
     out = tmp_path / "rings"
-    assert ring_profile.main(["--run", str(run), "--models", str(models), "--out", str(out), "--crops", "10"]) == 0
+    assert ring_profile.main(["--run", str(run), "--models", str(models), "--out", str(out), "--crops", "10",
+                              "--gallery", "13"]) == 0
+    assert (out / "turns.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     with open(out / "rings.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     objs = sorted({r["obj_id"] for r in rows})
