@@ -434,7 +434,11 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # curriculum ramps (loss.teacher_gate: 0.193 / 73, depth 8.1 vs 9.2 %), a curriculum
         # over 60 % of the run (0.235 / 52: the same). At equal minutes (about 9, obj 1; base
         # 0.332 / 30 at 3,600 steps): a 3x3 stem (the same), backbone="resnet10" (0.281 / 39),
-        # width 32 with decoder 64 (0.258 / 50); per step they learn no faster either.
+        # width 32 with decoder 64 (0.258 / 50); per step they learn no faster either. On the
+        # dumbbell alone (obj 13, whose ring of turns about its bar the encoder collapses to one
+        # embedding; experiments/ring_profile.py), none of these broke that ring by step 1,500:
+        # model.pose_downsample=1, loss.n_axis_negatives=64, model.mask_gate=false, and
+        # model.rot_readout with loss.w_rot_readout=1 or 10 (its loss stayed at the no-angle 2.0).
         # 18,000 steps: about an hour on 2 cores with one renderer worker. The "long" preset is
         # the same recipe over 150,000 steps (about 8 hours), run in legs (sc6d carry).
         cfg = TrainConfig(
