@@ -75,7 +75,7 @@ class Budget:
 BUDGETS: dict[str, Budget] = {
     "tiny": Budget(preset="tiny", steps=12, obj_ids=(1, 2), scenes=1, images_per_scene=2, objects_per_image=2,
                    library_size=20_000, so3_sizes=(20_000, 60_000), seeds=(0,), checkpoint_every=12,
-                   train_sets=("stream.occlusion=0.0", "val_crops=0"), workers=1),
+                   train_sets=("stream.occlusion=0.0", "val_crops=0"), workers=0),
     "medium": Budget(preset="cpu", steps=4000, obj_ids=(1, 3, 5, 8), scenes=4, images_per_scene=10,
                      objects_per_image=4, library_size=480_000,
                      so3_sizes=(20_000, 60_000, 180_000, 480_000, 1_440_000), seeds=(0, 1, 2),

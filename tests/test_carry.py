@@ -65,9 +65,10 @@ def runs(tmp_path_factory, models):
     root = tmp_path_factory.mktemp("carry")
     cfg = preset("tiny", steps=STEPS, checkpoint_every=3, log_every=1).replace(val_crops=0)
     cfg = cfg.replace(stream=dataclasses.replace(cfg.stream, obj_ids=(ASYM_OBJ,)))
-    train(cfg, models, root / "a", progress=False, verbose=False)
+    # workers=0: six steps render faster in this process than through a pool (the data are the same)
+    train(cfg, models, root / "a", progress=False, verbose=False, workers=0)
     with pytest.raises(_Stop):
-        train(cfg, models, root / "b", progress=False, verbose=False, data_fns=_stopping_data_fns(3))
+        train(cfg, models, root / "b", progress=False, verbose=False, data_fns=_stopping_data_fns(3), workers=0)
     assert [s for s, _ in checkpoint_dirs(root / "b")] == [3]
     with open(root / "b" / "metrics.jsonl", "a") as f:
         f.write('{"step": 4, "lo')  # a torn line, as a kill in mid-write leaves
@@ -94,7 +95,7 @@ def test_carried_state_resumes_bit_exact(runs, capsys):
     assert sorted(p.name for p in state.parent.iterdir()) == ["state"]  # no temporary leftovers
     # the carried folder is a run directory as it is: resume it with the CLI (config read back)
     assert main(["train", "--models", str(models), "--out", str(state), "--resume",
-                 "--no-progress", "--quiet"]) == 0
+                 "--no-progress", "--quiet", "--workers", "0"]) == 0
     capsys.readouterr()
     ref = a / "checkpoints" / "ckpt_00000006" / "state.npz"
     got = state / "checkpoints" / "ckpt_00000006" / "state.npz"
@@ -142,7 +143,7 @@ def test_amend_continues_a_run_under_a_changed_stream_and_resumes_bit_exact(runs
     for d in (straight, stopped):
         shutil.copytree(root / "b", d)
     assert main(["train", "--models", str(models), "--out", str(straight), "--resume", "--amend", *sets,
-                 "--no-progress", "--quiet"]) == 0
+                 "--no-progress", "--quiet", "--workers", "0"]) == 0
     amends = read_amendments(straight)
     assert [a["step"] for a in amends] == [3]
     assert sorted(c.split(" ")[0] for c in amends[0]["changes"]) == ["stream.box_scale", "stream.box_shift"]
@@ -152,11 +153,12 @@ def test_amend_continues_a_run_under_a_changed_stream_and_resumes_bit_exact(runs
     amended = TrainConfig.from_json((straight / "config.json").read_text())
     with pytest.raises(_Stop):  # amended at step 3, killed at step 4 before any new checkpoint
         train(amended, models, stopped, resume=True, amend=True, progress=False, verbose=False,
-              data_fns=_stopping_data_fns(4))
+              data_fns=_stopping_data_fns(4), workers=0)
     state = tmp_path / "state"
     assert main(["carry", "--run", str(stopped), "--out", str(state)]) == 0
     assert read_amendments(state) == amends
-    assert main(["train", "--models", str(models), "--out", str(state), "--resume", "--no-progress", "--quiet"]) == 0
+    assert main(["train", "--models", str(models), "--out", str(state), "--resume", "--no-progress", "--quiet",
+                 "--workers", "0"]) == 0
     ref = straight / "checkpoints" / "ckpt_00000006" / "state.npz"
     with np.load(ref) as x, np.load(state / "checkpoints" / "ckpt_00000006" / "state.npz") as y, \
             np.load(root / "a" / "checkpoints" / "ckpt_00000006" / "state.npz") as z:

@@ -43,7 +43,7 @@ def tiny_run(shared_data, tmp_path_factory) -> tuple[Path, Path, str]:
     if not (data / "test_targets_bop19.json").is_file():
         pytest.skip(f"LM-O data not found at {data}")
     out = tmp_path_factory.mktemp("lmo") / "exp"
-    res = _run("--out", str(out), "--budget", "tiny", "--data", str(data))
+    res = _run("--out", str(out), "--budget", "tiny", "--data", str(data), "--workers", "0")
     assert res.returncode == 0, res.stdout + res.stderr
     return data, out, res.stdout
 
