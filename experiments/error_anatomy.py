@@ -110,30 +110,45 @@ def figure(rows: list[dict], path: Path) -> Path:
     return save_figure(fig, path)
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+def checkpoint_parser(doc: str) -> argparse.ArgumentParser:
+    """The arguments of the scripts that score one checkpoint of a run on its validation crops:
+    --run, --models, --out, --step, --raw (this one and ring_profile.py)."""
+    p = argparse.ArgumentParser(description=doc.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run", required=True, type=Path, help="a training run's directory")
     p.add_argument("--models", required=True, type=Path, help="the BOP models/ folder the run trained on")
     p.add_argument("--out", required=True, type=Path)
     p.add_argument("--step", type=int, default=None, help="checkpoint step (default: the newest)")
+    p.add_argument("--raw", action="store_true", help="the raw parameters, not their moving average")
+    return p
+
+
+def load_scored_checkpoint(a: argparse.Namespace):
+    """(step, params, config) of the checkpoint named by :func:`checkpoint_parser`'s arguments;
+    a models folder without models_info.json or a folder that is not a run is refused."""
+    from sc6d_jax.checkpoint import find_checkpoint, load_checkpoint, read_meta
+    from sc6d_jax.pretrained import check_run
+
+    if not (a.models / "models_info.json").is_file():
+        raise FileNotFoundError(f"{a.models}: no models_info.json (not a BOP models/ folder)")
+    run = check_run(a.run)
+    step = int(read_meta(find_checkpoint(run, a.step))["step"])
+    params, cfg = load_checkpoint(run, step, raw=a.raw)
+    return step, params, cfg
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = checkpoint_parser(__doc__)
     p.add_argument("--crops", type=int, default=512, help="validation crops per difficulty (default 512)")
     p.add_argument("--lib", type=int, default=60_000, help="rotation grid size (default 60,000, as validation)")
-    p.add_argument("--raw", action="store_true", help="the raw parameters, not their moving average")
     a = p.parse_args(argv)
 
     def body() -> int:
-        from sc6d_jax.checkpoint import find_checkpoint, load_checkpoint, read_meta
-        from sc6d_jax.pretrained import check_run
         from sc6d_jax._io import atomic_write_text
         from sc6d_jax.train.validate import Validator
 
         if a.crops < 1 or a.lib < 1:
             raise ValueError("--crops and --lib must be positive")
-        if not (a.models / "models_info.json").is_file():
-            raise FileNotFoundError(f"{a.models}: no models_info.json (not a BOP models/ folder)")
-        run = check_run(a.run)
-        step = int(read_meta(find_checkpoint(run, a.step))["step"])
-        params, cfg = load_checkpoint(run, step, raw=a.raw)
+        step, params, cfg = load_scored_checkpoint(a)
         rows, overall = [], {}
         for name, ov in DIFFICULTIES.items():
             v = Validator(cfg, a.models, n=a.crops, lib_size=a.lib, stream_overrides=ov)

@@ -26,7 +26,6 @@ embedding: refused.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -36,7 +35,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
 from sc6d_jax._subprocess import experiment_main  # noqa: E402
+from error_anatomy import checkpoint_parser, load_scored_checkpoint  # noqa: E402
 
 STEP_DEG = 5.0
 COLUMNS = ("obj_id", "axis", "n", "enc_min_cos", "at_gt", "at_90", "at_180", "at_270", "score_range")
@@ -147,31 +149,20 @@ def turn_gallery(models: Path, obj_ids: list[int], path: Path, size: int = 64) -
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--run", required=True, type=Path, help="a training run's directory")
-    p.add_argument("--models", required=True, type=Path, help="the BOP models/ folder the run trained on")
-    p.add_argument("--out", required=True, type=Path)
-    p.add_argument("--step", type=int, default=None, help="checkpoint step (default: the newest)")
+    p = checkpoint_parser(__doc__)
     p.add_argument("--crops", type=int, default=128, help="validation crops (default 128)")
     p.add_argument("--plain", action="store_true", help="plain backgrounds and no occluders instead of the run's stream")
-    p.add_argument("--raw", action="store_true", help="the raw parameters, not their moving average")
     p.add_argument("--gallery", default=None, help="comma-separated object ids: also draw OUT/turns.png, each "
                    "object turned about its z axis by quarter turns at the run's crop size")
     a = p.parse_args(argv)
 
     def body() -> int:
         from sc6d_jax._io import atomic_write_text
-        from sc6d_jax.checkpoint import find_checkpoint, load_checkpoint, read_meta
-        from sc6d_jax.pretrained import check_run
         from sc6d_jax.train.validate import Validator
 
         if a.crops < 1:
             raise ValueError("--crops must be positive")
-        if not (a.models / "models_info.json").is_file():
-            raise FileNotFoundError(f"{a.models}: no models_info.json (not a BOP models/ folder)")
-        run = check_run(a.run)
-        step = int(read_meta(find_checkpoint(run, a.step))["step"])
-        params, cfg = load_checkpoint(run, step, raw=a.raw)
+        step, params, cfg = load_scored_checkpoint(a)
         if cfg.model.rot_head != "so3":
             raise ValueError(f"{a.run}: rot_head {cfg.model.rot_head!r} has no rotation embedding to profile")
         ov = {"occlusion": 0.0, "background": "plain"} if a.plain else None

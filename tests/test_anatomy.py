@@ -70,7 +70,8 @@ def test_anatomy_rows_of_hand_made_estimates():
     assert b["depth_rel_median"] == 0.0 and np.isnan(b["axis_x"])
 
 
-def test_command_on_a_checkpoint_writes_tables_and_a_figure(models, tmp_path):
+def _untrained_run(tmp_path: Path) -> Path:
+    """A run folder with one checkpoint (step 5) of fresh tiny-preset parameters for objects 1 and 2."""
     from sc6d_jax.model import init
     from sc6d_jax.train import StreamSettings, preset, save_checkpoint
 
@@ -81,6 +82,11 @@ def test_command_on_a_checkpoint_writes_tables_and_a_figure(models, tmp_path):
     save_checkpoint(run, 5, init(jax.random.PRNGKey(0), cfg.model), {}, np.zeros(2, np.uint32), cfg.to_dict(),
                     extra_meta={"models_dir": None})
     (run / "config.json").write_text(json.dumps(cfg.to_dict()))
+    return run
+
+
+def test_command_on_a_checkpoint_writes_tables_and_a_figure(models, tmp_path):
+    run = _untrained_run(tmp_path)
     out = tmp_path / "anatomy"
     res = subprocess.run([sys.executable, str(REPO / "experiments" / "error_anatomy.py"), "--run", str(run),
                           "--models", str(models), "--out", str(out), "--crops", "12", "--lib", "600"],
@@ -123,16 +129,7 @@ def test_ring_rows_of_hand_made_profiles():
 
 
 def test_ring_profile_command_on_a_checkpoint(models, tmp_path):
-    from sc6d_jax.model import init
-    from sc6d_jax.train import StreamSettings, preset, save_checkpoint
-
-    cfg = preset("tiny")
-    cfg = cfg.replace(model=dataclasses.replace(cfg.model, n_objects=2), stream=StreamSettings(batch_size=8, obj_ids=(1, 2)),
-                      z_range=(300.0, 3000.0))
-    run = tmp_path / "run"
-    save_checkpoint(run, 5, init(jax.random.PRNGKey(0), cfg.model), {}, np.zeros(2, np.uint32), cfg.to_dict(),
-                    extra_meta={"models_dir": None})
-    (run / "config.json").write_text(json.dumps(cfg.to_dict()))
+    run = _untrained_run(tmp_path)
     out = tmp_path / "rings"
     assert ring_profile.main(["--run", str(run), "--models", str(models), "--out", str(out), "--crops", "10",
                               "--gallery", "13"]) == 0
