@@ -286,15 +286,9 @@ def axis_ring_deltas(key: jax.Array, shape: tuple[int, ...], min_deg: float) -> 
     angle uniform in [min_deg, 360 - min_deg]; ``R_gt @ delta`` turns the ground truth in the
     object's frame (as :func:`axis_turns`, at every angle)."""
     k1, k2 = jax.random.split(key)
-    which = jax.random.randint(k1, shape, 0, 3)
+    which = jax.random.randint(k1, shape, 0, 3)[..., None, None]
     ang = jnp.deg2rad(jax.random.uniform(k2, shape, minval=min_deg, maxval=360.0 - min_deg))
-    c, s = jnp.cos(ang), jnp.sin(ang)
-    one, zero = jnp.ones_like(ang), jnp.zeros_like(ang)
-    rx = jnp.stack([jnp.stack([one, zero, zero], -1), jnp.stack([zero, c, -s], -1), jnp.stack([zero, s, c], -1)], -2)
-    ry = jnp.stack([jnp.stack([c, zero, s], -1), jnp.stack([zero, one, zero], -1), jnp.stack([-s, zero, c], -1)], -2)
-    rz = jnp.stack([jnp.stack([c, -s, zero], -1), jnp.stack([s, c, zero], -1), jnp.stack([zero, zero, one], -1)], -2)
-    w = which[..., None, None]
-    return jnp.where(w == 0, rx, jnp.where(w == 1, ry, rz))
+    return jnp.where(which == 0, rot_x(ang), jnp.where(which == 1, rot_y(ang), rot_z(ang)))
 
 
 def axis_turns() -> jax.Array:

@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from ._config import ModelConfig
 from ._layers import dense, init_dense, make_rng, split
 from ._encoder import backbone, decoder, init_backbone, init_decoder
 from ._pose_decoder import init_pose_decoder, pose_decoder
-from ._rotation import _l2n, init_rotation_head
+from ._rotation import _init_stacked_dense, _l2n, init_rotation_head
 
 #: ImageNet statistics (torchvision), so that converted ImageNet weights see familiar inputs.
 RGB_MEAN = (0.485, 0.456, 0.406)
@@ -38,9 +37,7 @@ def init(key: jax.Array, cfg: ModelConfig) -> dict:
     if cfg.dense_head:  # a fifth child of the generator: the other parts are drawn as without it
         params["dense_head"] = init_dense(split(rng, 1)[0], cfg.feat_dim, N_DENSE, scale=1.0)
     if cfg.rot_readout:  # the next child: the parts above are drawn as without it
-        ks = split(split(rng, 1)[0], cfg.n_objects)
-        heads = [init_dense(k, cfg.emb_dim, 6, scale=1.0) for k in ks]
-        params["rot_readout"] = {"w": np.stack([h["w"] for h in heads]), "b": np.stack([h["b"] for h in heads])}
+        params["rot_readout"] = _init_stacked_dense(split(rng, 1)[0], cfg.n_objects, cfg.emb_dim, 6, scale=1.0)
     return jax.tree.map(jnp.asarray, params)
 
 
