@@ -309,3 +309,51 @@ def test_ipdf_model_validates_and_predicts(tmp_path, models, scene):
         assert np.all(np.diff(p.score_topk) <= 1e-6) and 0.0 < p.prob <= 1.0
     with pytest.raises(ValueError, match="Implicit-PDF"):
         est.predict(image, K, boxes, [1, 3, 3], refine=True)
+
+
+def test_depth_prior_decodes_with_the_matched_rotation(tmp_path, models):
+    """model.z_rot: the estimator and the validator decode depth from the image's z logits plus
+    the prior of the rotation each crop was matched to. A prior that says 'far' where the
+    matched allocentric rotation has R[2,2] > 0 and 'near' where R[2,2] < 0 splits the decoded
+    delta_z by that sign (two values, whatever the untrained image head says)."""
+    from sc6d_jax.geometry import egocentric_to_allocentric, encode_translation
+    from sc6d_jax.model import init, z_code
+    from sc6d_jax.train import StreamSettings, preset, save_checkpoint
+    from sc6d_jax.train.validate import Validator
+
+    cfg = preset("tiny")
+    cfg = cfg.replace(model=dataclasses.replace(cfg.model, n_objects=2, z_rot=True),
+                      stream=StreamSettings(batch_size=16, obj_ids=(1, 3)), z_range=(20.0, 400.0))
+    params = init(jax.random.PRNGKey(0), cfg.model)
+    n, h, nb = 2, cfg.model.head_hidden, cfg.model.n_z_bins
+    w1, w2, wo = np.zeros((n, 9, h), np.float32), np.zeros((n, h, h), np.float32), np.zeros((n, h, nb), np.float32)
+    w1[:, 8, 0], w1[:, 8, 1] = 1.0, -1.0  # unit 0: relu(R22), unit 1: relu(-R22)
+    w2[:, 0, 0] = w2[:, 1, 1] = 1.0
+    wo[:, 0, nb - 4], wo[:, 1, 3] = 2000.0, 2000.0  # far / near bins, far above the image's logits
+    zeros = lambda *s: jnp.zeros(s, jnp.float32)
+    params["z_rot"] = {"fc1": {"w": jnp.asarray(w1), "b": zeros(n, h)}, "fc2": {"w": jnp.asarray(w2), "b": zeros(n, h)},
+                       "out": {"w": jnp.asarray(wo), "b": zeros(n, nb)}}
+
+    def split(r22, dz):
+        far, near = r22 > 0.05, r22 < -0.05
+        assert far.sum() >= 2 and near.sum() >= 2, (r22, dz)
+        np.testing.assert_allclose(dz[far], np.median(dz[far]), rtol=1e-3)
+        np.testing.assert_allclose(dz[near], np.median(dz[near]), rtol=1e-3)
+        assert np.median(dz[far]) > 2 * np.median(dz[near])
+
+    run = tmp_path / "zrot"
+    save_checkpoint(run, 1, params, {}, np.zeros(2, np.uint32), cfg.to_dict())
+    est = Estimator.load(run, library_size=LIB, progress=False)
+    S, B = cfg.model.crop_size, 24
+    rgb = np.random.default_rng(0).integers(0, 256, (B, S, S, 3), dtype=np.uint8)
+    K = np.tile(np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]], np.float32), (B, 1, 1))
+    center, side = np.tile(np.array([[300.0, 200.0]], np.float32), (B, 1)), np.full((B,), 120.0, np.float32)
+    out = est.predict_crops(rgb, K, center, side, np.arange(B, dtype=np.int32) % 2)
+    split(out["R_allo"][:, 2, 2], out["delta_z"])
+
+    v = Validator(cfg, models, n=32, lib_size=600, batch=16)
+    pred = v.predict(params)
+    d = v.data
+    Ra = np.asarray(egocentric_to_allocentric(jnp.asarray(pred["R"], jnp.float32), jnp.asarray(pred["t"], jnp.float32)))
+    _, dz = encode_translation(pred["t"], d["K"], d["center"], d["side"], S)
+    split(Ra[:, 2, 2], np.asarray(z_code(dz, jnp.asarray(d["K"]), cfg.loss)))  # the crops' focal lengths differ

@@ -373,3 +373,53 @@ def test_rotation_readout_reads_the_embedding_per_object_and_its_loss():
         loss_fn(p0, CFG, lcfg, batch, jax.random.key(1), Z_RANGE)
     with pytest.raises(ValueError, match="w_rot_readout"):
         LossConfig(w_rot_readout=-1.0)
+
+
+def test_depth_prior_from_rotation_adds_to_the_z_logits_and_trains():
+    """model.z_rot adds a per-object MLP of the allocentric rotation (9 -> h -> h -> n_z_bins) to
+    the image's z logits; it starts at zero (a fresh prior changes nothing, the other
+    parameters are drawn as without it), the loss feeds it the ground truth (perturbed by up to
+    loss.z_rot_noise_deg) and its gradient reaches it."""
+    from sc6d_jax.model import apply, with_z_prior
+
+    mcfg = dataclasses.replace(CFG, z_rot=True)
+    p0, p = init(jax.random.key(0), CFG), init(jax.random.key(0), mcfg)
+    assert set(p) == set(p0) | {"z_rot"}
+    for a, b in zip(jax.tree.leaves(p0), jax.tree.leaves({k: v for k, v in p.items() if k != "z_rot"})):
+        np.testing.assert_array_equal(a, b)
+    assert p["z_rot"]["fc1"]["w"].shape == (CFG.n_objects, 9, CFG.head_hidden)
+    assert p["z_rot"]["out"]["w"].shape == (CFG.n_objects, CFG.head_hidden, CFG.n_z_bins)
+    assert not np.any(np.asarray(p["z_rot"]["out"]["w"]))
+    batch = _batch(mcfg)
+    out = jax.jit(apply, static_argnums=1)(p, mcfg, batch["rgb"], batch["pe"], batch["obj_idx"])
+    R = jnp.asarray(batch["R_allo"])
+    np.testing.assert_array_equal(np.asarray(with_z_prior(p, mcfg, out, R, batch["obj_idx"])["z_logits"]),
+                                  np.asarray(out["z_logits"]))
+    assert with_z_prior(p, CFG, out, R, batch["obj_idx"]) is out  # without the option: untouched
+
+    rng = np.random.default_rng(3)
+    zr = jax.tree.map(lambda a: rng.normal(size=a.shape).astype(np.float32) * 0.3, jax.tree.map(np.asarray, p["z_rot"]))
+    p = {**p, "z_rot": jax.tree.map(jnp.asarray, zr)}
+    got = np.asarray(with_z_prior(p, mcfg, out, R, batch["obj_idx"])["z_logits"] - out["z_logits"])
+    relu = lambda x: np.maximum(x, 0.0)
+    for i, o in enumerate(np.asarray(batch["obj_idx"])):
+        h = relu(np.asarray(R[i]).reshape(9) @ zr["fc1"]["w"][o] + zr["fc1"]["b"][o])
+        h = relu(h @ zr["fc2"]["w"][o] + zr["fc2"]["b"][o])
+        np.testing.assert_allclose(got[i], h @ zr["out"]["w"][o] + zr["out"]["b"][o], rtol=1e-4, atol=1e-4)
+
+    f = jax.jit(loss_fn, static_argnums=(1, 2, 5))
+    lcfg = LossConfig(n_negatives=8)
+    key = jax.random.key(1)
+    _, a0 = f(p0, CFG, lcfg, batch, key, Z_RANGE)
+    _, a1 = f(p, mcfg, lcfg, batch, key, Z_RANGE)
+    _, a2 = f(p, mcfg, dataclasses.replace(lcfg, z_rot_noise_deg=20.0), batch, key, Z_RANGE)
+    _, a3 = f(p, mcfg, dataclasses.replace(lcfg, z_rot_noise_deg=20.0), batch, key, Z_RANGE)
+    for k in ("loss_rot", "loss_xy", "loss_mask"):  # the prior only touches depth
+        np.testing.assert_allclose(float(a1[k]), float(a0[k]), rtol=1e-5)
+    assert abs(float(a1["loss_z"]) - float(a0["loss_z"])) > 1e-3  # the prior of the ground truth counts
+    assert abs(float(a2["loss_z"]) - float(a1["loss_z"])) > 1e-5  # a perturbed rotation gives other logits
+    assert float(a2["loss_z"]) == float(a3["loss_z"])  # the perturbation is the key's
+    g = jax.grad(lambda q: f(q, mcfg, lcfg, batch, key, Z_RANGE)[0])(p)
+    assert all(float(jnp.abs(x).max()) > 0 for x in jax.tree.leaves(g["z_rot"]))
+    with pytest.raises(ValueError, match="z_rot_noise_deg"):
+        LossConfig(z_rot_noise_deg=-1.0)

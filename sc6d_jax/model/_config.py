@@ -64,6 +64,13 @@ class ModelConfig:
       S/16 (the second conv keeps its weights, with stride 1): for a 64-px crop the heads read
       a 4x4 map instead of 2x2, and the dilations 2-7 span that map as they span the paper's
       16x16 at 256 px.
+    - z_rot: a per-object depth prior from the rotation: an MLP of the allocentric rotation
+      (9 entries -> head_hidden -> head_hidden -> n_z_bins, output layer zero at init) whose
+      logits are added to the image's z logits (:func:`with_z_prior`). With a box around the
+      whole object, depth is the object's extent across the view over its extent in the crop,
+      and the extent is a function of the rotation alone; the image head keeps what the
+      rotation does not tell (perspective, occlusion). Training feeds the ground truth
+      (``LossConfig.z_rot_noise_deg`` perturbs it), inference the matched rotation.
     """
 
     n_objects: int = 1
@@ -91,6 +98,7 @@ class ModelConfig:
     z_size_input: bool = False
     pose_downsample: int = 2
     rot_readout: bool = False
+    z_rot: bool = False
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:

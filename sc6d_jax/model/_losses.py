@@ -24,7 +24,7 @@ from sc6d_jax.geometry import (
 )
 
 from ._config import ModelConfig
-from ._network import apply
+from ._network import apply, with_z_prior
 from ._rotation import rotation_logits
 
 Z_MODES = ("regression", "classification", "expectation")
@@ -89,6 +89,10 @@ class LossConfig:
       is flat): a nearly symmetric object (a dumbbell about its bar) stays there. The readout
       asks the image embedding for the angle directly. No symmetry labels: for an exactly
       symmetric object the target is ambiguous and the readout learns its mean (0 = off, paper).
+    - z_rot_noise_deg: with ``ModelConfig.z_rot``, the rotation the depth prior is fed in
+      training is the ground truth turned about a random axis by an angle uniform in
+      [0, z_rot_noise_deg] (0 = the ground truth itself): inference feeds the matched rotation,
+      which is off by some degrees.
     - per_sample_negatives: draw an independent random roll per sample (vmapped over the
       batch) instead of one set of deltas shared by the batch.
     - w_rot 1, w_xy 10, w_z 1, w_mask 1: loss weights.
@@ -129,6 +133,7 @@ class LossConfig:
     n_axis_negatives: int = 0
     axis_min_deg: float = 30.0
     w_rot_readout: float = 0.0
+    z_rot_noise_deg: float = 0.0
 
     def __post_init__(self) -> None:
         if self.z_mode not in Z_MODES:
@@ -160,7 +165,7 @@ class LossConfig:
         if not isinstance(self.n_negatives, int) or self.n_negatives < 1:
             raise ValueError(f"n_negatives must be a positive int, got {self.n_negatives!r}")
         for name in ("w_rot", "w_xy", "w_z", "w_mask", "w_z_l1", "w_dense", "w_rot_readout", "focal_alpha",
-                     "focal_gamma"):
+                     "focal_gamma", "z_rot_noise_deg"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 
@@ -395,6 +400,12 @@ def loss_fn(
 
     dxy = jnp.asarray(batch["delta_xy"], jnp.float32)
     loss_xy = jnp.mean(jnp.sum(jnp.abs(out["delta_xy"] - dxy), axis=-1))
+
+    if mcfg.z_rot:
+        R_z = R_gt
+        if lcfg.z_rot_noise_deg > 0:
+            R_z = R_gt @ local_rotation_deltas(jax.random.fold_in(key, 3), (R_gt.shape[0],), 0.0, lcfg.z_rot_noise_deg)
+        out = with_z_prior(params, mcfg, out, R_z, obj_idx)
 
     dz = jnp.asarray(batch["delta_z"], jnp.float32)
     code = z_code(dz, batch.get("K"), lcfg)

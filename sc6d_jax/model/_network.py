@@ -9,7 +9,7 @@ from ._config import ModelConfig
 from ._layers import dense, init_dense, make_rng, split
 from ._encoder import backbone, decoder, init_backbone, init_decoder
 from ._pose_decoder import init_pose_decoder, pose_decoder
-from ._rotation import _init_stacked_dense, _l2n, init_rotation_head
+from ._rotation import _init_stacked_dense, _l2n, init_rotation_head, init_z_prior
 
 #: ImageNet statistics (torchvision), so that converted ImageNet weights see familiar inputs.
 RGB_MEAN = (0.485, 0.456, 0.406)
@@ -38,6 +38,8 @@ def init(key: jax.Array, cfg: ModelConfig) -> dict:
         params["dense_head"] = init_dense(split(rng, 1)[0], cfg.feat_dim, N_DENSE, scale=1.0)
     if cfg.rot_readout:  # the next child: the parts above are drawn as without it
         params["rot_readout"] = _init_stacked_dense(split(rng, 1)[0], cfg.n_objects, cfg.emb_dim, 6, scale=1.0)
+    if cfg.z_rot:  # the next child
+        params["z_rot"] = init_z_prior(split(rng, 1)[0], cfg)
     return jax.tree.map(jnp.asarray, params)
 
 
@@ -99,6 +101,17 @@ def apply(
         ro = params["rot_readout"]
         extra["rot_6d"] = jnp.einsum("be,bes->bs", emb, ro["w"][obj_idx]) + ro["b"][obj_idx]
     return {"rot_emb": emb, "delta_xy": dxy, "z_logits": zl, "mask_logit": mask_logit, **extra}
+
+
+def with_z_prior(params: dict, cfg: ModelConfig, out: dict, R_allo: jax.Array, obj_idx: jax.Array) -> dict:
+    """``out`` with the rotation's depth prior added to its z logits (``cfg.z_rot``; unchanged
+    without it). R_allo (B,3,3): the allocentric rotation each crop is decoded with (the ground
+    truth in training, the matched rotation at inference), in the crop's own frame."""
+    if not cfg.z_rot:
+        return out
+    from ._rotation import z_prior_logits
+
+    return {**out, "z_logits": out["z_logits"] + z_prior_logits(params["z_rot"], R_allo, obj_idx)}
 
 
 def count_params(params: dict) -> int:

@@ -64,6 +64,26 @@ def init_rotation_head(key: np.random.Generator, cfg: ModelConfig) -> dict:
     }
 
 
+def init_z_prior(key: np.random.Generator, cfg: ModelConfig) -> dict:
+    """Per-object MLP 9 -> head_hidden -> head_hidden -> n_z_bins; the output layer starts at
+    zero, so a fresh prior adds nothing to the image's z logits."""
+    k1, k2, k3 = split(key, 3)
+    n, h = cfg.n_objects, cfg.head_hidden
+    out = _init_stacked_dense(k3, n, h, cfg.n_z_bins, scale=1.0)
+    return {"fc1": _init_stacked_dense(k1, n, 9, h), "fc2": _init_stacked_dense(k2, n, h, h),
+            "out": {"w": np.zeros_like(out["w"]), "b": out["b"]}}
+
+
+def z_prior_logits(p: dict, R: jax.Array, obj_idx: jax.Array) -> jax.Array:
+    """(B, n_z_bins) depth-prior logits of rotations R (B,3,3) for objects obj_idx (B,)."""
+    obj = jnp.asarray(obj_idx, jnp.int32)
+    sel = jax.tree.map(lambda a: a[obj], p)
+    x = R.reshape(R.shape[0], 9).astype(jnp.float32)
+    h = jax.nn.relu(jnp.einsum("bi,bih->bh", x, sel["fc1"]["w"]) + sel["fc1"]["b"])
+    h = jax.nn.relu(jnp.einsum("bi,bih->bh", h, sel["fc2"]["w"]) + sel["fc2"]["b"])
+    return jnp.einsum("bi,bih->bh", h, sel["out"]["w"]) + sel["out"]["b"]
+
+
 def encode_rotations(params: dict, cfg: ModelConfig, R: jax.Array, obj_idx: jax.Array | int) -> jax.Array:
     """SO(3) encoder: unit embeddings (..., emb_dim) of rotations R (..., 3, 3) for object(s) obj_idx.
 
