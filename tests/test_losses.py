@@ -421,5 +421,22 @@ def test_depth_prior_from_rotation_adds_to_the_z_logits_and_trains():
     assert float(a2["loss_z"]) == float(a3["loss_z"])  # the perturbation is the key's
     g = jax.grad(lambda q: f(q, mcfg, lcfg, batch, key, Z_RANGE)[0])(p)
     assert all(float(jnp.abs(x).max()) > 0 for x in jax.tree.leaves(g["z_rot"]))
+    # trained separately: the image head's depth loss is the one without the prior, the prior
+    # has its own (the same loss of its logits alone), and the total adds it with w_z
+    sep = dataclasses.replace(lcfg, z_rot_separate=True)
+    loss4, a4 = f(p, mcfg, sep, batch, key, Z_RANGE)
+    np.testing.assert_allclose(float(a4["loss_z"]), float(a0["loss_z"]), rtol=1e-5)
+    p_bias = {**p, "z_rot": {**p["z_rot"], "out": {"w": jnp.zeros_like(p["z_rot"]["out"]["w"]),
+                                                  "b": jnp.zeros_like(p["z_rot"]["out"]["b"])}}}
+    flat = dataclasses.replace(sep, z_loss="gauss", w_z_l1=0.0, z_mode="expectation")
+    _, a5 = f(p_bias, mcfg, flat, batch, key, Z_RANGE)  # flat prior logits: cross-entropy log(n_bins)
+    np.testing.assert_allclose(float(a5["loss_z_prior"]), np.log(CFG.n_z_bins), rtol=1e-5)
+    assert "loss_z_prior" not in a1
+    rest = sep.w_rot * a4["loss_rot"] + sep.w_xy * a4["loss_xy"] + sep.w_z * a4["loss_z"] + sep.w_mask * a4["loss_mask"]
+    np.testing.assert_allclose(float(loss4), float(rest + sep.w_z * a4["loss_z_prior"]), rtol=1e-5)
+    g = jax.grad(lambda q: f(q, mcfg, sep, batch, key, Z_RANGE)[0])(p)
+    assert all(float(jnp.abs(x).max()) > 0 for x in jax.tree.leaves(g["z_rot"]))
     with pytest.raises(ValueError, match="z_rot_noise_deg"):
         LossConfig(z_rot_noise_deg=-1.0)
+    with pytest.raises(ValueError, match="z_rot_separate"):
+        LossConfig(z_rot_separate=1)

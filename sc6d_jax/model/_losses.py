@@ -93,6 +93,10 @@ class LossConfig:
       training is the ground truth turned about a random axis by an angle uniform in
       [0, z_rot_noise_deg] (0 = the ground truth itself): inference feeds the matched rotation,
       which is off by some degrees.
+    - z_rot_separate: with ``ModelConfig.z_rot``, train the prior and the image's z head each
+      on its own depth loss (the image head exactly as without the prior) instead of their sum
+      of logits; inference still adds the two (a product of the two distributions). Joint
+      training lets the image head lean on the ground-truth rotation it never has at inference.
     - per_sample_negatives: draw an independent random roll per sample (vmapped over the
       batch) instead of one set of deltas shared by the batch.
     - w_rot 1, w_xy 10, w_z 1, w_mask 1: loss weights.
@@ -134,6 +138,7 @@ class LossConfig:
     axis_min_deg: float = 30.0
     w_rot_readout: float = 0.0
     z_rot_noise_deg: float = 0.0
+    z_rot_separate: bool = False
 
     def __post_init__(self) -> None:
         if self.z_mode not in Z_MODES:
@@ -156,8 +161,9 @@ class LossConfig:
             raise ValueError(f"n_axis_negatives must be a non-negative int, got {self.n_axis_negatives!r}")
         if not 0 < self.axis_min_deg < 180:
             raise ValueError(f"axis_min_deg must be in (0, 180), got {self.axis_min_deg}")
-        if not isinstance(self.turn_negatives, bool):
-            raise ValueError(f"turn_negatives must be true or false, got {self.turn_negatives!r}")
+        for name in ("turn_negatives", "z_rot_separate"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
         if self.mask_downsample not in MASK_DOWNSAMPLE:
             raise ValueError(f"mask_downsample must be one of {MASK_DOWNSAMPLE}, got {self.mask_downsample!r}")
         if not self.tau > 0:
@@ -401,36 +407,47 @@ def loss_fn(
     dxy = jnp.asarray(batch["delta_xy"], jnp.float32)
     loss_xy = jnp.mean(jnp.sum(jnp.abs(out["delta_xy"] - dxy), axis=-1))
 
-    if mcfg.z_rot:
-        R_z = R_gt
-        if lcfg.z_rot_noise_deg > 0:
-            R_z = R_gt @ local_rotation_deltas(jax.random.fold_in(key, 3), (R_gt.shape[0],), 0.0, lcfg.z_rot_noise_deg)
-        out = with_z_prior(params, mcfg, out, R_z, obj_idx)
-
     dz = jnp.asarray(batch["delta_z"], jnp.float32)
     code = z_code(dz, batch.get("K"), lcfg)
     a_lo, a_hi = _z_axis(lcfg, z_range)
     val = jnp.log(code) if lcfg.z_bins == "log" else code
-    if lcfg.z_mode == "regression":
-        loss_z = jnp.mean(jnp.abs(out["z_logits"][:, 0] - (val - a_lo) / (a_hi - a_lo)))
-    else:
-        labels = z_bin_label(val, mcfg.n_z_bins, a_lo, a_hi)
-        if lcfg.z_loss == "focal":
-            loss_z = focal_loss(out["z_logits"], labels, lcfg.focal_alpha, lcfg.focal_gamma)
-        elif lcfg.z_loss == "gauss":
-            pos = jnp.clip((val - a_lo) / (a_hi - a_lo), 0.0, 1.0) * (mcfg.n_z_bins - 1)
-            soft = gaussian_bin_targets(pos, mcfg.n_z_bins, lcfg.z_label_sigma)
-            loss_z = -jnp.mean(jnp.sum(soft * jax.nn.log_softmax(out["z_logits"], axis=-1), axis=-1))
+
+    def depth_loss(o: dict) -> tuple[jax.Array, jax.Array]:
+        """(depth loss, decoded code) of z logits ``o["z_logits"]``."""
+        if lcfg.z_mode == "regression":
+            lz = jnp.mean(jnp.abs(o["z_logits"][:, 0] - (val - a_lo) / (a_hi - a_lo)))
         else:
-            loss_z = cross_entropy(out["z_logits"], labels)
-    code_pred = predict_z(out, lcfg, z_range)
-    if lcfg.w_z_l1 > 0:
-        loss_z = loss_z + lcfg.w_z_l1 * jnp.mean(jnp.abs(jnp.log(jnp.maximum(code_pred, 1e-6) / code)))
+            labels = z_bin_label(val, mcfg.n_z_bins, a_lo, a_hi)
+            if lcfg.z_loss == "focal":
+                lz = focal_loss(o["z_logits"], labels, lcfg.focal_alpha, lcfg.focal_gamma)
+            elif lcfg.z_loss == "gauss":
+                pos = jnp.clip((val - a_lo) / (a_hi - a_lo), 0.0, 1.0) * (mcfg.n_z_bins - 1)
+                soft = gaussian_bin_targets(pos, mcfg.n_z_bins, lcfg.z_label_sigma)
+                lz = -jnp.mean(jnp.sum(soft * jax.nn.log_softmax(o["z_logits"], axis=-1), axis=-1))
+            else:
+                lz = cross_entropy(o["z_logits"], labels)
+        pred = predict_z(o, lcfg, z_range)
+        if lcfg.w_z_l1 > 0:
+            lz = lz + lcfg.w_z_l1 * jnp.mean(jnp.abs(jnp.log(jnp.maximum(pred, 1e-6) / code)))
+        return lz, pred
+
+    extra = {}
+    if mcfg.z_rot:
+        R_z = R_gt
+        if lcfg.z_rot_noise_deg > 0:
+            R_z = R_gt @ local_rotation_deltas(jax.random.fold_in(key, 3), (R_gt.shape[0],), 0.0, lcfg.z_rot_noise_deg)
+        if lcfg.z_rot_separate:  # the prior on its own, the image head as without it
+            prior = with_z_prior(params, mcfg, {"z_logits": jnp.zeros_like(out["z_logits"])}, R_z, obj_idx)
+            extra["loss_z_prior"] = depth_loss(prior)[0]
+        else:
+            out = with_z_prior(params, mcfg, out, R_z, obj_idx)
+    loss_z, code_pred = depth_loss(out)
 
     loss_mask = bce_with_logits(out["mask_logit"], target)
 
     loss = lcfg.w_rot * loss_rot + lcfg.w_xy * loss_xy + lcfg.w_z * loss_z + lcfg.w_mask * loss_mask
-    extra = {}
+    if "loss_z_prior" in extra:
+        loss = loss + lcfg.w_z * extra["loss_z_prior"]
     if lcfg.w_dense > 0:
         extra["loss_dense"] = dense_loss(out, batch)
         loss = loss + lcfg.w_dense * extra["loss_dense"]
