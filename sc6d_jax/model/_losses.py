@@ -25,7 +25,7 @@ from sc6d_jax.geometry import (
 
 from ._config import ModelConfig
 from ._network import apply, with_z_prior
-from ._rotation import rotation_logits
+from ._rotation import rotation_logits, z_prior_logits
 
 Z_MODES = ("regression", "classification", "expectation")
 Z_LOSSES = ("focal", "ce", "gauss")
@@ -437,8 +437,7 @@ def loss_fn(
         if lcfg.z_rot_noise_deg > 0:
             R_z = R_gt @ local_rotation_deltas(jax.random.fold_in(key, 3), (R_gt.shape[0],), 0.0, lcfg.z_rot_noise_deg)
         if lcfg.z_rot_separate:  # the prior on its own, the image head as without it
-            prior = with_z_prior(params, mcfg, {"z_logits": jnp.zeros_like(out["z_logits"])}, R_z, obj_idx)
-            extra["loss_z_prior"] = depth_loss(prior)[0]
+            extra["loss_z_prior"] = depth_loss({"z_logits": z_prior_logits(params["z_rot"], R_z, obj_idx)})[0]
         else:
             out = with_z_prior(params, mcfg, out, R_z, obj_idx)
     loss_z, code_pred = depth_loss(out)

@@ -9,7 +9,7 @@ from ._config import ModelConfig
 from ._layers import dense, init_dense, make_rng, split
 from ._encoder import backbone, decoder, init_backbone, init_decoder
 from ._pose_decoder import init_pose_decoder, pose_decoder
-from ._rotation import _init_stacked_dense, _l2n, init_rotation_head, init_z_prior
+from ._rotation import _init_stacked_dense, _l2n, init_rotation_head, init_z_prior, z_prior_logits
 
 #: ImageNet statistics (torchvision), so that converted ImageNet weights see familiar inputs.
 RGB_MEAN = (0.485, 0.456, 0.406)
@@ -109,8 +109,6 @@ def with_z_prior(params: dict, cfg: ModelConfig, out: dict, R_allo: jax.Array, o
     truth in training, the matched rotation at inference), in the crop's own frame."""
     if not cfg.z_rot:
         return out
-    from ._rotation import z_prior_logits
-
     return {**out, "z_logits": out["z_logits"] + z_prior_logits(params["z_rot"], R_allo, obj_idx)}
 
 
