@@ -1,7 +1,7 @@
 """Training data: random scenes, procedural backgrounds, colour augmentation, the crop stream."""
 
 from sc6d_jax.data._augment import colour_augment, random_background
-from sc6d_jax.data._scene import IMAGE_H, IMAGE_W, SamplePose, jitter, project_box, random_intrinsics, sample_pose
+from sc6d_jax.data._scene import IMAGE_H, IMAGE_W, SamplePose, hull_vertices, jitter, project_box, random_intrinsics, sample_pose
 from sc6d_jax.data._stream import CropStream, StreamConfig, delta_z_range, dense_targets, derive_seed, resolve_obj_ids
 
 __all__ = [
@@ -15,6 +15,7 @@ __all__ = [
     "dense_targets",
     "derive_seed",
     "jitter",
+    "hull_vertices",
     "project_box",
     "random_background",
     "random_intrinsics",

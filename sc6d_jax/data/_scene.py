@@ -57,6 +57,27 @@ def project_box(vertices: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarra
     return np.array([lo[0], lo[1], hi[0] - lo[0], hi[1] - lo[1]])
 
 
+def hull_vertices(vertices: np.ndarray) -> np.ndarray:
+    """The vertices of the convex hull of ``vertices`` (a subset of the rows, in their order).
+
+    ``project_box`` of them gives the box of the whole point set, for every pose with the points
+    in front of the camera: a pinhole projection maps the hull onto the hull of the projected
+    vertices, and each image coordinate u = (a.v)/(c.v) is linear-fractional, so its extremes
+    over a polytope lie at vertices. A scanned model of 10,000-100,000 vertices has a few hundred
+    on its hull, so the boxes of sampled poses cost 10-100x less (sampling 4,000 poses of two
+    LM-O models: 14 s -> under a second). Flat or degenerate point sets are returned whole."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    v = np.asarray(vertices, np.float64)
+    if len(v) < 5:
+        return v
+    try:
+        idx = np.unique(ConvexHull(v).vertices)
+    except (QhullError, ValueError):
+        return v
+    return v[idx]
+
+
 def jitter(rng: np.random.Generator, box: np.ndarray, shift: float = 0.25, scale=(0.75, 1.25)) -> np.ndarray:
     """The authors' box jitter: centre +-shift*(w, h), one size factor in ``scale``."""
     x, y, w, h = box

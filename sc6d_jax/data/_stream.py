@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from sc6d_jax.data._augment import camera_effects, colour_augment, random_background
-from sc6d_jax.data._scene import project_box, random_rotation, sample_pose
+from sc6d_jax.data._scene import hull_vertices, project_box, random_rotation, sample_pose
 
 #: Resample a crop whose visible mask is below either bound (authors' code).
 MIN_VISIBLE_PX = 50
@@ -250,7 +250,7 @@ class _Worker:
         infos = load_models_info(cfg.models_dir)
         all_ids = sorted(infos)
         meshes = {i: load_mesh(model_path(cfg.models_dir, i)) for i in all_ids}
-        self.vertices = {i: np.asarray(m.vertices, np.float64) for i, m in meshes.items()}
+        self.vertices = {i: hull_vertices(m.vertices) for i, m in meshes.items()}  # for the boxes
         self.diameters = {i: infos[i].diameter for i in all_ids}
         self.all_ids = all_ids
         S = cfg.crop_size
@@ -647,7 +647,7 @@ def delta_z_range(
 
     obj_ids = resolve_obj_ids(cfg)
     infos = load_models_info(cfg.models_dir)
-    verts = {i: np.asarray(load_mesh(model_path(cfg.models_dir, i)).vertices) for i in obj_ids}
+    verts = {i: hull_vertices(load_mesh(model_path(cfg.models_dir, i)).vertices) for i in obj_ids}
     diam = {i: infos[i].diameter for i in obj_ids}
     rng = np.random.default_rng([cfg.seed, 2**31 - 1])
     dz = []
