@@ -311,6 +311,7 @@ def test_ipdf_model_validates_and_predicts(tmp_path, models, scene):
         est.predict(image, K, boxes, [1, 3, 3], refine=True)
 
 
+@pytest.mark.slow  # ~30 s of compiles for an option that stays off (README: "Depth from the rotation")
 def test_depth_prior_decodes_with_the_matched_rotation(tmp_path, models):
     """model.z_rot: the estimator and the validator decode depth from the image's z logits plus
     the prior of the rotation each crop was matched to. A prior that says 'far' where the

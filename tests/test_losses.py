@@ -375,11 +375,10 @@ def test_rotation_readout_reads_the_embedding_per_object_and_its_loss():
         LossConfig(w_rot_readout=-1.0)
 
 
-def test_depth_prior_from_rotation_adds_to_the_z_logits_and_trains():
+def test_depth_prior_from_rotation_adds_to_the_z_logits():
     """model.z_rot adds a per-object MLP of the allocentric rotation (9 -> h -> h -> n_z_bins) to
     the image's z logits; it starts at zero (a fresh prior changes nothing, the other
-    parameters are drawn as without it), the loss feeds it the ground truth (perturbed by up to
-    loss.z_rot_noise_deg) and its gradient reaches it."""
+    parameters are drawn as without it). Its losses: the slow test below."""
     from sc6d_jax.model import apply, with_z_prior
 
     mcfg = dataclasses.replace(CFG, z_rot=True)
@@ -406,7 +405,23 @@ def test_depth_prior_from_rotation_adds_to_the_z_logits_and_trains():
         h = relu(np.asarray(R[i]).reshape(9) @ zr["fc1"]["w"][o] + zr["fc1"]["b"][o])
         h = relu(h @ zr["fc2"]["w"][o] + zr["fc2"]["b"][o])
         np.testing.assert_allclose(got[i], h @ zr["out"]["w"][o] + zr["out"]["b"][o], rtol=1e-4, atol=1e-4)
+    with pytest.raises(ValueError, match="z_rot_noise_deg"):
+        LossConfig(z_rot_noise_deg=-1.0)
+    with pytest.raises(ValueError, match="z_rot_separate"):
+        LossConfig(z_rot_separate=1)
 
+
+@pytest.mark.slow  # ~60 s of compiles on 2 cores for an option that stays off (README: "Depth from the rotation")
+def test_depth_prior_losses_joint_noisy_and_separate():
+    """The loss feeds the prior the ground truth (perturbed by up to loss.z_rot_noise_deg, by the
+    step key), only the depth term changes, and with loss.z_rot_separate the image head's depth
+    loss is the one without the prior while the prior has its own; the gradient reaches it."""
+    mcfg = dataclasses.replace(CFG, z_rot=True)
+    p0, p = init(jax.random.key(0), CFG), init(jax.random.key(0), mcfg)
+    batch = _batch(mcfg)
+    rng = np.random.default_rng(3)
+    zr = jax.tree.map(lambda a: rng.normal(size=a.shape).astype(np.float32) * 0.3, jax.tree.map(np.asarray, p["z_rot"]))
+    p = {**p, "z_rot": jax.tree.map(jnp.asarray, zr)}
     f = jax.jit(loss_fn, static_argnums=(1, 2, 5))
     lcfg = LossConfig(n_negatives=8)
     key = jax.random.key(1)
@@ -434,7 +449,3 @@ def test_depth_prior_from_rotation_adds_to_the_z_logits_and_trains():
     np.testing.assert_allclose(float(loss4), float(rest + sep.w_z * a4["loss_z_prior"]), rtol=1e-5)
     g = jax.grad(lambda q: f(q, mcfg, sep, batch, key, Z_RANGE)[0])(p)
     assert all(float(jnp.abs(x).max()) > 0 for x in jax.tree.leaves(g["z_rot"]))
-    with pytest.raises(ValueError, match="z_rot_noise_deg"):
-        LossConfig(z_rot_noise_deg=-1.0)
-    with pytest.raises(ValueError, match="z_rot_separate"):
-        LossConfig(z_rot_separate=1)
