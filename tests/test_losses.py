@@ -375,6 +375,12 @@ def test_rotation_readout_reads_the_embedding_per_object_and_its_loss():
         LossConfig(w_rot_readout=-1.0)
 
 
+def _random_z_prior(p: dict) -> dict:
+    """``p`` with the depth prior's parameters drawn at random (a fresh prior outputs zeros)."""
+    rng = np.random.default_rng(3)
+    return {**p, "z_rot": jax.tree.map(lambda a: jnp.asarray(rng.normal(size=a.shape).astype(np.float32) * 0.3), p["z_rot"])}
+
+
 def test_depth_prior_from_rotation_adds_to_the_z_logits():
     """model.z_rot adds a per-object MLP of the allocentric rotation (9 -> h -> h -> n_z_bins) to
     the image's z logits; it starts at zero (a fresh prior changes nothing, the other
@@ -396,9 +402,8 @@ def test_depth_prior_from_rotation_adds_to_the_z_logits():
                                   np.asarray(out["z_logits"]))
     assert with_z_prior(p, CFG, out, R, batch["obj_idx"]) is out  # without the option: untouched
 
-    rng = np.random.default_rng(3)
-    zr = jax.tree.map(lambda a: rng.normal(size=a.shape).astype(np.float32) * 0.3, jax.tree.map(np.asarray, p["z_rot"]))
-    p = {**p, "z_rot": jax.tree.map(jnp.asarray, zr)}
+    p = _random_z_prior(p)
+    zr = jax.tree.map(np.asarray, p["z_rot"])
     got = np.asarray(with_z_prior(p, mcfg, out, R, batch["obj_idx"])["z_logits"] - out["z_logits"])
     relu = lambda x: np.maximum(x, 0.0)
     for i, o in enumerate(np.asarray(batch["obj_idx"])):
@@ -417,11 +422,8 @@ def test_depth_prior_losses_joint_noisy_and_separate():
     step key), only the depth term changes, and with loss.z_rot_separate the image head's depth
     loss is the one without the prior while the prior has its own; the gradient reaches it."""
     mcfg = dataclasses.replace(CFG, z_rot=True)
-    p0, p = init(jax.random.key(0), CFG), init(jax.random.key(0), mcfg)
+    p0, p = init(jax.random.key(0), CFG), _random_z_prior(init(jax.random.key(0), mcfg))
     batch = _batch(mcfg)
-    rng = np.random.default_rng(3)
-    zr = jax.tree.map(lambda a: rng.normal(size=a.shape).astype(np.float32) * 0.3, jax.tree.map(np.asarray, p["z_rot"]))
-    p = {**p, "z_rot": jax.tree.map(jnp.asarray, zr)}
     f = jax.jit(loss_fn, static_argnums=(1, 2, 5))
     lcfg = LossConfig(n_negatives=8)
     key = jax.random.key(1)

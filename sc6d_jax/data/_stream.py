@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from sc6d_jax.data._augment import camera_effects, colour_augment, random_background
-from sc6d_jax.data._scene import hull_vertices, project_box, random_rotation, sample_pose
+from sc6d_jax.data._scene import hull_vertices, random_rotation, sample_pose
 
 #: Resample a crop whose visible mask is below either bound (authors' code).
 MIN_VISIBLE_PX = 50
