@@ -443,6 +443,8 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # with 5-degree noise 0.581 / 11.5 deg / depth 3.81 % against 0.605 / 11.6 / 3.28 %; fitted
         # alone and added to a finished run, the same (README "Depth from the rotation"). A wider
         # SO(3) encoder (emb_dim 64, so3_hidden 256): 0.608 / 10.6 / 3.24 %, the same.
+        # lr 4e-3 (obj 1, 6,000 steps, two seeds, each a same-run A/B against 2e-3): validation AR
+        # +0.019 with seed 0, -0.014 with seed 1 (obj1_lr_seeds.csv): no gain.
         # 18,000 steps: about an hour on 2 cores with one renderer worker. The "long" preset is
         # the same recipe over 150,000 steps (about 8 hours), run in legs (sc6d carry).
         cfg = TrainConfig(
