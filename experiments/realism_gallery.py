@@ -51,7 +51,7 @@ def real_rows(dataset: Path, n: int, size: int, seed: int) -> tuple[np.ndarray, 
     with the object rendered over them at its ground-truth pose (the renderer's default lights):
     where the two agree, the render of the object itself is faithful and the gap is elsewhere."""
     from sc6d_jax import geometry as G
-    from sc6d_jax.bop import BopDataset, model_path
+    from sc6d_jax.bop import BopDataset, bbox_extent, model_path
     from sc6d_jax.render import Renderer, load_mesh
 
     ds = BopDataset(dataset)
@@ -70,7 +70,7 @@ def real_rows(dataset: Path, n: int, size: int, seed: int) -> tuple[np.ndarray, 
     try:
         for sid, im_id, gt, gi, K in pick:
             img = ds.load_rgb(sid, im_id)
-            c, s = G.crop_box(np.asarray(gi.bbox_visib, np.float64), 1.5)
+            c, s = G.crop_box(bbox_extent(gi.bbox_visib), 1.5)
             T = np.asarray(G.crop_transform(np.asarray(c), np.asarray(s), size))
             crop = G.warp_crop(img, T, size)
             out = renderer.render([(gt.obj_id, gt.R, gt.t)], T @ K, depth=False)

@@ -234,7 +234,7 @@ def overlay_figures(
     import cv2
 
     from sc6d_jax._io import atomic_write_bytes
-    from sc6d_jax.bop import BopDataset, read_results_csv
+    from sc6d_jax.bop import BopDataset, bbox_extent, read_results_csv
     from sc6d_jax.inference._estimator import PosePrediction
     from sc6d_jax.inference.cli import draw_overlay
 
@@ -252,7 +252,7 @@ def overlay_figures(
         gts = ds.scene_gt(scene_id).get(im_id, [])
         preds = []
         for e in (e for e in ests if (e.scene_id, e.im_id) == (scene_id, im_id)):
-            box = next((np.array(i.bbox_visib, float) for g, i in zip(gts, infos) if g.obj_id == e.obj_id), np.zeros(4))
+            box = next((bbox_extent(i.bbox_visib) for g, i in zip(gts, infos) if g.obj_id == e.obj_id), np.zeros(4))
             preds.append(PosePrediction(obj_id=e.obj_id, box=box, R=e.R, t=e.t, score=e.score, prob=0.0,
                                         R_topk=e.R[None], prob_topk=np.zeros(1), score_topk=np.zeros(1)))
         pic = np.concatenate([img, draw_overlay(img, K, preds, str(ds.models_dir))], axis=1)
@@ -293,7 +293,7 @@ def write_eval_figures(
       its symmetric equivalents;
     - with ``scores`` (a ``sc6d eval`` JSON path or dict): ``ar_per_object.png``.
     """
-    from sc6d_jax.bop import BopDataset
+    from sc6d_jax.bop import BopDataset, bbox_extent
 
     dataset_dir, results_csv, out_dir = Path(dataset_dir), Path(results_csv), Path(out_dir)
     if not dataset_dir.is_dir():
@@ -336,7 +336,7 @@ def write_eval_figures(
                     break
                 if g.obj_id not in est.obj_ids or gi.bbox_visib[2] <= 0 or gi.bbox_visib[3] <= 0:
                     continue
-                pred = est.predict(image, K, np.asarray([gi.bbox_visib], np.float64), [g.obj_id], top_k=k)[0]
+                pred = est.predict(image, K, bbox_extent(gi.bbox_visib)[None], [g.obj_id], top_k=k)[0]
                 info = infos_all.get(g.obj_id)
                 syms = _symmetry_rotations(info) if info is not None else None
                 eq = g.R[None] if syms is None else g.R @ syms

@@ -139,3 +139,27 @@ def test_reads_reference_results(shared_data):
     assert ds.has_depth()
     depth = ds.load_depth(1, 0)
     assert depth.dtype == np.float32 and depth.max() > 100  # mm
+
+
+def test_bbox_extent_turns_bop_pixel_boxes_into_the_silhouettes_extent():
+    """BOP's bbox_visib runs from the first visible pixel's centre to the last one's: about one
+    pixel short of the silhouette. bbox_extent recovers the silhouette's extent without bias
+    (discs at random sub-pixel positions, pixel centres at integers)."""
+    from sc6d_jax.bop import bbox_extent
+
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[0:96, 0:96]
+    raw_err, ext_err = [], []
+    for _ in range(200):
+        cx, cy, r = rng.uniform(40, 56), rng.uniform(40, 56), rng.uniform(8, 30)
+        ys, xs = np.nonzero((xx - cx) ** 2 + (yy - cy) ** 2 <= r * r)
+        bbox = (xs.min(), ys.min(), xs.max() - xs.min(), ys.max() - ys.min())  # the toolkit's calc_2d_bbox
+        ext = bbox_extent(bbox)
+        raw_err += [bbox[2] - 2 * r, bbox[3] - 2 * r]
+        ext_err += [ext[2] - 2 * r, ext[3] - 2 * r]
+        np.testing.assert_allclose(ext[:2] + ext[2:] / 2, (cx, cy), atol=0.5)  # the centre stays
+    assert -1.2 < np.mean(raw_err) < -0.8  # the pixel box is a pixel short
+    assert abs(np.mean(ext_err)) < 0.2 and np.max(np.abs(ext_err)) <= 1.0
+    np.testing.assert_array_equal(bbox_extent(np.array([[10, 20, 5, 7]] * 2)), [[9.5, 19.5, 6, 8]] * 2)
+    with pytest.raises(ValueError, match="bbox"):
+        bbox_extent([1, 2, 3])

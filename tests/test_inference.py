@@ -184,16 +184,26 @@ def test_tta_rotation_matches_rz90():
         np.testing.assert_array_equal(a, b)
 
 
-def test_predict_cli_on_bop_dataset(run_dir, shared_data, tmp_path, capsys):
-    from sc6d_jax.bop import read_results_csv
+def test_predict_cli_on_bop_dataset(run_dir, shared_data, tmp_path, capsys, monkeypatch):
+    from sc6d_jax.bop import BopDataset, bbox_extent, read_results_csv
+    from sc6d_jax.inference import _estimator
     from sc6d_jax.inference.cli import main as predict_main
     from sc6d_jax.metrics.cli import main as eval_main
 
     ds = shared_data / "bop_reference" / "tudl"
     out = tmp_path / "sc6d_tudl-test.csv"
+    seen = []  # the boxes each image's call gets: the extents of the ground truth's bbox_visib
+    real_predict = _estimator.Estimator.predict
+    monkeypatch.setattr(_estimator.Estimator, "predict",
+                        lambda self, image, K, boxes, *a, **k: seen.append(np.array(boxes)) or real_predict(self, image, K, boxes, *a, **k))
     # the library was cached by the session's Estimator: same size -> no rebuild
     assert predict_main(["--run", str(run_dir), "--dataset", str(ds), "--out", str(out),
                          "--library-size", "480", "--no-progress"]) == 0
+    bop = BopDataset(ds)
+    first = min(bop.targets(), key=lambda t: (t.scene_id, t.im_id))
+    gti = [gi for g, gi in zip(bop.scene_gt(first.scene_id)[first.im_id], bop.scene_gt_info(first.scene_id)[first.im_id])
+           if g.obj_id == first.obj_id]
+    np.testing.assert_allclose(seen[0][0], bbox_extent(max(gti, key=lambda gi: gi.px_count_visib).bbox_visib))
     est = read_results_csv(out)
     assert len(est) > 0 and all(np.isfinite(e.t).all() and _is_rotation(e.R, 1e-3) for e in est)
     per_image = {}

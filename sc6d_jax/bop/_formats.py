@@ -42,6 +42,24 @@ class GtInfo:
     visib_fract: float
 
 
+def bbox_extent(bbox) -> np.ndarray:
+    """The continuous extent ``(x, y, w, h)`` of a BOP pixel box, as the estimator takes boxes.
+
+    BOP's ``bbox_visib`` (and the toolkit's ``calc_2d_bbox``) is ``(x_min, y_min, x_max - x_min,
+    y_max - y_min)`` over the indices of the mask's pixels: it runs from the first pixel's centre
+    to the last one's, about one pixel less than the silhouette it was measured on. The
+    silhouette covers ``[x_min - 0.5, x_max + 0.5]`` (pixel centres at integers, the K
+    convention), so its extent is ``(x - 0.5, y - 0.5, w + 1, h + 1)``. Crops cut from the
+    extent show the object as the training crops do (cut from the projection's exact extent);
+    cut from the pixel box, each object looks one pixel larger, and its depth came out about
+    1 % too far at 100-pixel boxes. Works on ``(4,)`` or ``(N, 4)``.
+    """
+    b = np.asarray(bbox, np.float64)
+    if b.shape[-1:] != (4,):
+        raise ValueError(f"bbox must be (x, y, w, h), got shape {b.shape}")
+    return b + np.array([-0.5, -0.5, 1.0, 1.0])
+
+
 @dataclass(frozen=True)
 class Target:
     scene_id: int

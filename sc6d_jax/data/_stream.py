@@ -62,8 +62,9 @@ class StreamConfig:
             depth head must measure the object's size in pixels to within its depth error.
             (0, (1, 1)) = the amodal box itself. Every setting draws the same random numbers.
         box_source: the box the crop is cut from (before the jitter): "amodal", the projection
-            of the whole model, or "visible", the bounding box of the target's visible pixels,
-            as the BOP ground truth's ``bbox_visib`` or a detector gives it: an occluded target
+            of the whole model, or "visible", the extent of the target's visible pixels, as the
+            estimator takes a ground truth's ``bbox_visib`` (``sc6d_jax.bop.bbox_extent``) or a
+            detector's box: an occluded target
             then fills the crop as it does at inference. The visible box is measured in a first
             render of the crop's scene (target and occluders, masks only) through the amodal
             box, so occluded crops cost two renders; unoccluded ones are cut from the amodal box
@@ -310,8 +311,10 @@ class _Worker:
         if len(xs) < MIN_VISIBLE_PX:
             return None
         r, tx, ty = T0[0, 0], T0[0, 2], T0[1, 2]
-        u0, u1 = (xs.min() - tx) / r, (xs.max() - tx) / r  # pixel centres, as bbox_visib
-        v0, v1 = (ys.min() - ty) / r, (ys.max() - ty) / r
+        # the extent of the visible pixels (bop.bbox_extent of a bbox_visib, as the estimator
+        # takes a ground-truth box): half a pixel beyond the first and last pixel centres
+        u0, u1 = (xs.min() - 0.5 - tx) / r, (xs.max() + 0.5 - tx) / r
+        v0, v1 = (ys.min() - 0.5 - ty) / r, (ys.max() + 0.5 - ty) / r
         wv, hv = max(u1 - u0, 1.0), max(v1 - v0, 1.0)
         # the jitter that took box_obj to box, applied to the visible box (the same draws)
         xj, yj, wj, hj = (float(v) for v in p.box)

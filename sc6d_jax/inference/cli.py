@@ -6,8 +6,9 @@ Dataset mode::
                  [--library-size N] [--detections FILE]
 
 Every target of ``test_targets_bop19.json``; boxes are the ground-truth visible boxes
-(``scene_gt_info`` ``bbox_visib``, the ``inst_count`` instances with the most visible pixels)
-unless ``--detections`` gives a BOP detection JSON (``scene_id, image_id, category_id, bbox,
+(``scene_gt_info`` ``bbox_visib``, the ``inst_count`` instances with the most visible pixels;
+taken as the extent of the pixels, ``sc6d_jax.bop.bbox_extent``: one pixel wider than BOP's
+centre-to-centre box, as the training crops are cut) unless ``--detections`` gives a BOP detection JSON (``scene_id, image_id, category_id, bbox,
 score``; the ``inst_count`` best-scoring detections). The estimate's score is the detection
 score when there is one, else the rotation's cosine. ``time`` is the wall time of the image.
 
@@ -100,7 +101,7 @@ def _read_detections(path: Path) -> dict[tuple[int, int], list[tuple[int, np.nda
 def predict_dataset(est, args) -> int:
     from tqdm import tqdm
 
-    from sc6d_jax.bop import BopDataset, PoseEstimate, write_results_csv
+    from sc6d_jax.bop import BopDataset, PoseEstimate, bbox_extent, write_results_csv
 
     ds = BopDataset(args.dataset, split=args.split)
     targets = ds.targets()
@@ -126,7 +127,7 @@ def predict_dataset(est, args) -> int:
                 continue
             if dets is None:
                 gts, gtis = infos[scene_id][0].get(im_id, []), infos[scene_id][1].get(im_id, [])
-                cand = [(gi.px_count_visib, np.asarray(gi.bbox_visib, np.float64), None)
+                cand = [(gi.px_count_visib, bbox_extent(gi.bbox_visib), None)
                         for g, gi in zip(gts, gtis) if g.obj_id == tg.obj_id and gi.bbox_visib[2] > 0 and gi.bbox_visib[3] > 0]
             else:
                 cand = [(s, b, s) for (o, b, s) in dets.get((scene_id, im_id), []) if o == tg.obj_id and b[2] > 0 and b[3] > 0]
@@ -142,9 +143,10 @@ def predict_dataset(est, args) -> int:
         K = cams[scene_id][im_id].K
         h, w = image.shape[:2]
         bx = np.asarray(boxes, np.float64)
-        # clip boxes to the image (detections may reach outside it)
-        x0, y0 = np.clip(bx[:, 0], 0, w - 1), np.clip(bx[:, 1], 0, h - 1)
-        x1, y1 = np.clip(bx[:, 0] + bx[:, 2], x0 + 1, w), np.clip(bx[:, 1] + bx[:, 3], y0 + 1, h)
+        # clip boxes to the image, which covers [-0.5, w - 0.5] x [-0.5, h - 0.5] (detections may
+        # reach outside it)
+        x0, y0 = np.clip(bx[:, 0], -0.5, w - 1.5), np.clip(bx[:, 1], -0.5, h - 1.5)
+        x1, y1 = np.clip(bx[:, 0] + bx[:, 2], x0 + 1, w - 0.5), np.clip(bx[:, 1] + bx[:, 3], y0 + 1, h - 0.5)
         bx = np.stack([x0, y0, x1 - x0, y1 - y0], axis=1)
         preds = est.predict(image, K, bx, ids, tta=args.tta, refine=args.refine)
         dt = time.perf_counter() - t0
