@@ -71,7 +71,7 @@ def validate_K(K: Any, name: str = "K") -> np.ndarray:
 
 
 def validate_boxes(boxes: Any, image_size: tuple[int, int] | None = None, name: str = "boxes") -> np.ndarray:
-    """Check 2D boxes ``(x, y, w, h)`` in pixels (BOP bbox, pixel-centre convention).
+    """Check 2D boxes ``(x, y, w, h)`` in pixels (pixel centres at integer coordinates).
 
     Raises ValueError for a wrong shape (last axis must be 4), NaN/inf, ``w <= 0`` or
     ``h <= 0``, and, when ``image_size = (width, height)`` is given, boxes lying wholly outside

@@ -180,6 +180,10 @@ class Estimator:
     ) -> list[PosePrediction]:
         """Poses of the objects in ``boxes`` (N x 4, x y w h px) of ``image`` (HxWx3 / HxW uint8).
 
+        A box is the object's extent with pixel centres at integer coordinates (pixels 10..19
+        make x = 9.5, w = 10); BOP's pixel boxes (``bbox_visib``) convert with
+        :func:`sc6d_jax.bop.bbox_extent`.
+
         Args:
             K: (3, 3) intrinsics of the image. obj_ids: N BOP object ids known to the model.
             tta: 4-fold in-plane rotation test-time augmentation (the authors').

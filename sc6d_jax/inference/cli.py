@@ -8,8 +8,9 @@ Dataset mode::
 Every target of ``test_targets_bop19.json``; boxes are the ground-truth visible boxes
 (``scene_gt_info`` ``bbox_visib``, the ``inst_count`` instances with the most visible pixels;
 taken as the extent of the pixels, ``sc6d_jax.bop.bbox_extent``: one pixel wider than BOP's
-centre-to-centre box, as the training crops are cut) unless ``--detections`` gives a BOP detection JSON (``scene_id, image_id, category_id, bbox,
-score``; the ``inst_count`` best-scoring detections). The estimate's score is the detection
+centre-to-centre box, as the training crops are cut) unless ``--detections`` gives a BOP
+detection JSON (``scene_id, image_id, category_id, bbox, score``; the ``inst_count``
+best-scoring detections, their boxes as they are). The estimate's score is the detection
 score when there is one, else the rotation's cosine. ``time`` is the wall time of the image.
 
 Image mode::
