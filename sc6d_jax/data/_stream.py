@@ -301,6 +301,7 @@ class _Worker:
         jitters ``p.box_obj``; None when too little of the target is visible. The visible box is
         measured on the masks of a render through the (unjittered) amodal box's crop."""
         from sc6d_jax import geometry as G
+        from sc6d_jax.bop import bbox_extent
 
         cfg, S = self.cfg, self.cfg.crop_size
         xo, yo, wo, ho = (float(v) for v in p.box_obj)
@@ -311,10 +312,10 @@ class _Worker:
         if len(xs) < MIN_VISIBLE_PX:
             return None
         r, tx, ty = T0[0, 0], T0[0, 2], T0[1, 2]
-        # the extent of the visible pixels (bop.bbox_extent of a bbox_visib, as the estimator
-        # takes a ground-truth box): half a pixel beyond the first and last pixel centres
-        u0, u1 = (xs.min() - 0.5 - tx) / r, (xs.max() + 0.5 - tx) / r
-        v0, v1 = (ys.min() - 0.5 - ty) / r, (ys.max() + 0.5 - ty) / r
+        # the extent of the visible pixels, as the estimator takes a ground-truth bbox_visib
+        x, y, w, h = bbox_extent((xs.min(), ys.min(), xs.max() - xs.min(), ys.max() - ys.min()))
+        u0, u1 = (x - tx) / r, (x + w - tx) / r
+        v0, v1 = (y - ty) / r, (y + h - ty) / r
         wv, hv = max(u1 - u0, 1.0), max(v1 - v0, 1.0)
         # the jitter that took box_obj to box, applied to the visible box (the same draws)
         xj, yj, wj, hj = (float(v) for v in p.box)
