@@ -5,7 +5,7 @@
 3. runs the render-and-check (renderer vs geometry; a picture),
 4. with a model (the shipped ``builtin`` model by default, ``--run RUN_DIR`` for another, or
    ``--train`` to train one with the ``cpu`` preset first): predicts every target from the
-   ground-truth visible boxes, evaluates with the BOP19 metrics, prints the AR table (overall,
+   ground-truth visible boxes (with fused 4-fold test-time augmentation; ``--no-tta`` without), evaluates with the BOP19 metrics, prints the AR table (overall,
    symmetric, asymmetric objects) and the pose-error breakdown (median rotation, depth and
    centre errors) and writes pictures: overlays of the estimated poses,
    rotation distributions on the sphere and AR per object.
@@ -52,7 +52,8 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--scenes", type=int, default=2)
     ap.add_argument("--images-per-scene", type=int, default=6)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--tta", action="store_true", help="test-time augmentation when predicting")
+    ap.add_argument("--tta", action=argparse.BooleanOptionalAction, default=True,
+                    help="4-fold test-time augmentation, fused (default on; --no-tta: one look per crop)")
     ap.add_argument("--library-size", type=int, default=480_000, help="rotation library size (20000..1440000)")
     a = ap.parse_args(argv)
     if a.run is not None and a.train:
@@ -100,7 +101,8 @@ def main(argv: list[str]) -> int:
     from sc6d_jax.metrics.cli import main as eval_main
 
     results = out / "sc6d_builtin-test.csv"
-    _step(f"predicting every target (ground-truth visible boxes) -> {results}")
+    how = "4-fold test-time augmentation, fused" if a.tta else "no test-time augmentation"
+    _step(f"predicting every target (ground-truth visible boxes, {how}) -> {results}")
     predict_main(["--run", str(run), "--dataset", str(dataset), "--out", str(results),
                   "--library-size", str(a.library_size)] + (["--tta"] if a.tta else []))
     _step("BOP19 evaluation")

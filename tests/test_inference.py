@@ -94,12 +94,49 @@ def test_grayscale_and_empty(est, scene):
 def test_tta_and_refine_return_valid_rotations(est, scene):
     image, K, boxes, ids = scene
     plain = est.predict(image, K, boxes, ids)
-    out = est.predict(image, K, boxes, ids, tta=True, refine=True)
+    out = est.predict(image, K, boxes, ids, tta=True, refine=True, tta_mode="best")
     for p, q in zip(out, plain):
         assert _is_rotation(p.R, atol=1e-3) and np.all(np.isfinite(p.t)) and p.t[2] > 0
         assert p.score >= -1.0
     # refinement never lowers the cosine of the copy it starts from (TTA's best copy >= copy 0)
     assert all(p.score >= q.score - 1e-5 for p, q in zip(out, plain))
+    with pytest.raises(ValueError, match="tta_mode"):
+        est.predict(image, K, boxes, ids, tta=True, tta_mode="vote")
+
+
+def test_fused_tta_picks_the_candidate_all_four_copies_score_best(est, scene):
+    """tta_mode="fuse": the rotation (allocentric, in the crop's frame) maximises the four copies'
+    mean cosine mean_k <f_k, g(Rz(90k) R)> over the pooled candidates, so it scores at least as
+    high on that mean as the authors' pick (the best single copy's top-1, which is among the
+    candidates); score is that mean, prob the copies' mean library probability; translation is
+    the same in both modes; refinement does not lower the mean."""
+    from sc6d_jax.geometry import crop_transform, pe_map
+    from sc6d_jax.model import apply, encode_rotations
+
+    image, K, boxes, ids = scene
+    n_pad = 4
+    crops, center, side = est.make_crops(image, boxes, n_pad)
+    obj = np.concatenate([est.obj_index(ids), est.obj_index(ids[:1])])
+    Kb = np.broadcast_to(K.astype(np.float32), (n_pad, 3, 3))
+    fuse = est.predict_crops(crops, Kb, center, side, obj, tta=True, top_k=3)
+    best = est.predict_crops(crops, Kb, center, side, obj, tta=True, top_k=3, tta_mode="best")
+    refined = est.predict_crops(crops, Kb, center, side, obj, tta=True, top_k=3, refine=True)
+
+    pe = pe_map(jnp.asarray(Kb), crop_transform(jnp.asarray(center), jnp.asarray(side), est.mcfg.crop_size),
+                est.mcfg.crop_size)
+    f = [apply(est.params, est.mcfg, rotate_crops(jnp.asarray(crops), k), pe if est.mcfg.use_pe else None,
+               jnp.asarray(obj))["rot_emb"] for k in range(4)]
+
+    def mean_cos(R_allo):  # (B,3,3) -> (B,)
+        g = [encode_rotations(est.params, est.mcfg, rz90(k) @ jnp.asarray(R_allo), jnp.asarray(obj)) for k in range(4)]
+        return np.asarray(sum(jnp.sum(gk * fk, axis=-1) for gk, fk in zip(g, f)) / 4)
+
+    np.testing.assert_allclose(fuse["score"], mean_cos(fuse["R_allo"]), atol=1e-4)
+    assert np.all(fuse["score"] >= mean_cos(best["R_allo"]) - 1e-4)
+    assert np.all(np.diff(fuse["score_topk"], axis=1) <= 1e-6) and np.all((fuse["prob"] > 0) & (fuse["prob"] <= 1))
+    np.testing.assert_allclose(fuse["t"], best["t"], rtol=1e-5)
+    assert np.all(refined["score"] >= fuse["score"] - 1e-5)
+    np.testing.assert_allclose(refined["score"], mean_cos(refined["R_allo"]), atol=1e-4)
 
 
 @pytest.mark.parametrize(
@@ -313,7 +350,9 @@ def test_ipdf_model_validates_and_predicts(tmp_path, models, scene):
     est = Estimator.load(run, library_size=LIB, progress=False)
     assert est.library.emb.shape == (1, LIB, 9) and not (run / "library").exists()
     image, K, boxes, _ = scene
-    out = est.predict(image, K, boxes, [1, 3, 3], tta=True, top_k=3)
+    out = est.predict(image, K, boxes, [1, 3, 3], tta=True, top_k=3, tta_mode="best")
+    with pytest.raises(ValueError, match="Implicit-PDF"):  # fused TTA scores rotations with the SO(3) encoder
+        est.predict(image, K, boxes, [1, 3, 3], tta=True)
     for p in out:
         assert _is_rotation(p.R) and _is_rotation(p.R_topk) and np.all(np.isfinite(p.t)) and p.t[2] > 0
         assert np.all(np.diff(p.score_topk) <= 1e-6) and 0.0 < p.prob <= 1.0

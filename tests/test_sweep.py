@@ -74,7 +74,7 @@ def test_ablation_resumes_and_writes_tables(ablation_dir):
     assert (a4["loss"]["z_mode"], a4["loss"]["z_loss"], a4["model"]["use_pe"], a4["model"]["rot_head"]) == (
         "expectation", "focal", True, "so3")
     assert a4["seed"] == 0 and a4["stream"]["obj_ids"] == [1, 2] and a4["steps"] == 12
-    assert "--tta" in (out / "logs" / "TTA_s0.predict.log").read_text().splitlines()[0]
+    assert "--tta --tta-mode best" in (out / "logs" / "TTA_s0.predict.log").read_text().splitlines()[0]  # the paper's
     assert "--tta" not in (out / "logs" / "A4_s0.predict.log").read_text().splitlines()[0]
     # tables agree with the scores JSONs
     runs = _read_csv(out / "runs.csv")
@@ -246,4 +246,4 @@ def test_ablation_deltas_pair_seeds_and_compare_signs_with_the_paper():
     # the IPDF row trains an Implicit-PDF head as wide as the preset's SO(3) encoder, and predicts with TTA
     row = sw.ROW_BY_NAME["IPDF"]
     args = [str(x) for x in sw._train_args(sw.BUDGETS["medium"], Path("m"), Path("r"), 0, row.sets)]
-    assert "model.rot_head=ipdf" in args and "model.ipdf_hidden=128" in args and row.predict == ("--tta",)
+    assert "model.rot_head=ipdf" in args and "model.ipdf_hidden=128" in args and row.predict == ("--tta", "--tta-mode", "best")

@@ -1,7 +1,7 @@
 """``Estimator``: a trained SC6D model ready to estimate poses from an image, K and boxes.
 
     est = Estimator.load(run_dir)                 # params, config, cached rotation library
-    poses = est.predict(image, K, boxes, obj_ids, tta=False, top_k=1, refine=False)
+    poses = est.predict(image, K, boxes, obj_ids, tta=False, top_k=1, refine=False, tta_mode="fuse")
 
 Crops are made exactly as the training stream makes them (:mod:`sc6d_jax.geometry`: square
 box of side 1.5 max(w, h) around the box centre, ``warp_crop`` bilinear with zero border, PE
@@ -27,7 +27,7 @@ from sc6d_jax.inference._library import (
     load_or_build_library,
     pack_library,
 )
-from sc6d_jax.inference._predictor import predict_crops
+from sc6d_jax.inference._predictor import TTA_MODES, predict_crops
 
 CROP_PAD = 1.5
 #: Rows per library block in the estimator (see Estimator.packed_library).
@@ -159,12 +159,15 @@ class Estimator:
         crops = warp_crop(image, np.asarray(T), S, interpolation="linear")
         return crops, np.asarray(center, np.float32), np.asarray(side, np.float32)
 
-    def crops_fn(self, batch: int, tta: bool = False, top_k: int = 1, refine: bool = False):
+    def crops_fn(self, batch: int, tta: bool = False, top_k: int = 1, refine: bool = False,
+                 tta_mode: str = "fuse"):
         """``f(params, blocks, lib_R, rgb, K, center, side, obj_idx) -> dict`` (jitted, static
         options bound) and its library arguments, for a batch of ``batch`` crops."""
+        if tta_mode not in TTA_MODES:
+            raise ValueError(f"tta_mode must be one of {TTA_MODES}, got {tta_mode!r}")
         blocks, n = self.packed_library()
         kw = dict(mcfg=self.mcfg, lcfg=self.lcfg, z_range=self.z_range, n_valid=n, tta=tta,
-                  top_k=top_k, refine=refine, tau=self.tau)
+                  top_k=top_k, refine=refine, tau=self.tau, tta_mode=tta_mode)
         return kw, blocks
 
     # ------------------------------------------------------------------ prediction
@@ -177,6 +180,7 @@ class Estimator:
         tta: bool = False,
         top_k: int = 1,
         refine: bool = False,
+        tta_mode: str = "fuse",
     ) -> list[PosePrediction]:
         """Poses of the objects in ``boxes`` (N x 4, x y w h px) of ``image`` (HxWx3 / HxW uint8).
 
@@ -186,9 +190,13 @@ class Estimator:
 
         Args:
             K: (3, 3) intrinsics of the image. obj_ids: N BOP object ids known to the model.
-            tta: 4-fold in-plane rotation test-time augmentation (the authors').
+            tta: 4-fold in-plane rotation test-time augmentation (the authors': the crop turned
+                by 0/90/180/270 degrees; depth and centre offset averaged).
             top_k: number of library rotations returned per box (best first).
             refine: continuous refinement of the best rotation (BFGS on the cosine).
+            tta_mode: with ``tta``, how the four copies choose the rotation: ``"fuse"`` (the
+                default: candidates pooled from all copies, scored by their mean cosine) or
+                ``"best"`` (the authors': the copy with the highest cosine alone).
 
         Returns:
             One :class:`PosePrediction` per box, in order; [] for no boxes.
@@ -218,7 +226,8 @@ class Estimator:
         crops, center, side = self.make_crops(image, bx, n_pad)
         obj_p = np.concatenate([obj_idx, np.repeat(obj_idx[:1], n_pad - n)])
         K_b = np.broadcast_to(Kn.astype(np.float32), (n_pad, 3, 3))
-        out = self.predict_crops(crops, K_b, center, side, obj_p, tta=tta, top_k=int(top_k), refine=refine)
+        out = self.predict_crops(crops, K_b, center, side, obj_p, tta=tta, top_k=int(top_k), refine=refine,
+                                 tta_mode=tta_mode)
         res = []
         for i in range(n):
             res.append(
@@ -230,19 +239,19 @@ class Estimator:
             )
         return res
 
-    def export(self, path: str | os.PathLike, tta: bool = False, top_k: int = 1) -> Path:
+    def export(self, path: str | os.PathLike, tta: bool = False, top_k: int = 1, tta_mode: str = "fuse") -> Path:
         """Serialise the predictor (crops in, poses out; params and library baked into the file)
         with ``jax.export``; run it with :func:`sc6d_jax.inference.load_exported`."""
         from sc6d_jax.inference._export import export_predictor
 
-        return export_predictor(self, path, tta=tta, top_k=top_k)
+        return export_predictor(self, path, tta=tta, top_k=top_k, tta_mode=tta_mode)
 
     def predict_crops(
         self, rgb: np.ndarray, K: np.ndarray, center: np.ndarray, side: np.ndarray, obj_idx: np.ndarray,
-        tta: bool = False, top_k: int = 1, refine: bool = False,
+        tta: bool = False, top_k: int = 1, refine: bool = False, tta_mode: str = "fuse",
     ) -> dict[str, np.ndarray]:
         """Run the jitted predictor on prepared crops; returns host arrays with finite poses."""
-        kw, blocks = self.crops_fn(rgb.shape[0], tta=tta, top_k=top_k, refine=refine)
+        kw, blocks = self.crops_fn(rgb.shape[0], tta=tta, top_k=top_k, refine=refine, tta_mode=tta_mode)
         out = predict_crops(
             self.params, blocks, self._lib_R, jnp.asarray(rgb), jnp.asarray(K, jnp.float32),
             jnp.asarray(center, jnp.float32), jnp.asarray(side, jnp.float32), jnp.asarray(obj_idx, jnp.int32), **kw,

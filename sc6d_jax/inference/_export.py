@@ -28,8 +28,9 @@ EXPORT_FORMAT = "sc6d-jax-exported-predictor/1"
 FIXED_BATCH = 16
 
 
-def export_predictor(est: Any, path: str | os.PathLike, tta: bool = False, top_k: int = 1) -> Path:
-    """Write ``est``'s predictor (options fixed: tta, top_k; no refinement) to ``path`` (.npz)."""
+def export_predictor(est: Any, path: str | os.PathLike, tta: bool = False, top_k: int = 1,
+                     tta_mode: str = "fuse") -> Path:
+    """Write ``est``'s predictor (options fixed: tta, tta_mode, top_k; no refinement) to ``path`` (.npz)."""
     import jax
     import jax.numpy as jnp
     from jax import export
@@ -37,7 +38,7 @@ def export_predictor(est: Any, path: str | os.PathLike, tta: bool = False, top_k
     from sc6d_jax.inference._predictor import predict_crops
 
     leaves, treedef = jax.tree_util.tree_flatten(est.params)
-    kw, blocks = est.crops_fn(64, tta=tta, top_k=top_k, refine=False)
+    kw, blocks = est.crops_fn(64, tta=tta, top_k=top_k, refine=False, tta_mode=tta_mode)
     S = est.mcfg.crop_size
 
     def fn(leaves, blocks, lib_R, rgb, K, center, side, obj_idx):
@@ -64,7 +65,7 @@ def export_predictor(est: Any, path: str | os.PathLike, tta: bool = False, top_k
     except NotImplementedError:  # per-sample kernels: the batch becomes a conv group count
         exp = export.export(jax.jit(fn))(*args_for(FIXED_BATCH))
         fixed = FIXED_BATCH
-    meta = {"format": EXPORT_FORMAT, "crop_size": S, "obj_ids": est.obj_ids, "tta": tta, "top_k": top_k,
+    meta = {"format": EXPORT_FORMAT, "crop_size": S, "obj_ids": est.obj_ids, "tta": tta, "tta_mode": tta_mode, "top_k": top_k,
             "n_params": len(leaves), "library_key": est.library.key, "fixed_batch": fixed}
     arrays = {f"p{i:05d}": np.asarray(x) for i, x in enumerate(leaves)}
     arrays.update(blocks=np.asarray(blocks), lib_R=np.asarray(est._lib_R),

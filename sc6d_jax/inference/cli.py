@@ -2,7 +2,7 @@
 
 Dataset mode::
 
-    sc6d predict --run RUN --dataset DIR [--split test] --out RESULTS.csv [--tta] [--refine]
+    sc6d predict --run RUN --dataset DIR [--split test] --out RESULTS.csv [--tta [--tta-mode fuse|best]] [--refine]
                  [--library-size N] [--detections FILE]
 
 Every target of ``test_targets_bop19.json``; boxes are the ground-truth visible boxes
@@ -50,7 +50,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--boxes", type=Path, default=None, help="JSON list of boxes (x, y, w, h)")
     p.add_argument("--obj-ids", default=None, help="comma-separated BOP object ids, one per box")
     p.add_argument("--overlay", type=Path, default=None, help="overlay PNG (default IMAGE_STEM_poses.png)")
-    p.add_argument("--tta", action="store_true", help="4-fold in-plane rotation test-time augmentation")
+    p.add_argument("--tta", action="store_true",
+                   help="4-fold in-plane rotation test-time augmentation (about 1.3x the time; AR +0.06 "
+                        "for the builtin model)")
+    p.add_argument("--tta-mode", choices=("fuse", "best"), default="fuse",
+                   help="with --tta: fuse = every copy scores the candidates of all four (default); "
+                        "best = the authors' (the copy with the highest cosine alone)")
     p.add_argument("--refine", action="store_true", help="continuous rotation refinement (BFGS)")
     p.add_argument("--top-k", type=int, default=1, help="rotations per box in the JSON output (image mode)")
     p.add_argument("--library-size", type=int, default=480_000, help="rotation library size (20000..1440000)")
@@ -149,7 +154,7 @@ def predict_dataset(est, args) -> int:
         x0, y0 = np.clip(bx[:, 0], -0.5, w - 1.5), np.clip(bx[:, 1], -0.5, h - 1.5)
         x1, y1 = np.clip(bx[:, 0] + bx[:, 2], x0 + 1, w - 0.5), np.clip(bx[:, 1] + bx[:, 3], y0 + 1, h - 0.5)
         bx = np.stack([x0, y0, x1 - x0, y1 - y0], axis=1)
-        preds = est.predict(image, K, bx, ids, tta=args.tta, refine=args.refine)
+        preds = est.predict(image, K, bx, ids, tta=args.tta, refine=args.refine, tta_mode=args.tta_mode)
         dt = time.perf_counter() - t0
         for p, s in zip(preds, scores):
             estimates.append(PoseEstimate(scene_id=scene_id, im_id=im_id, obj_id=p.obj_id,
@@ -265,7 +270,8 @@ def predict_image(est, args) -> int:
     image = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
     K = read_camera(args.camera)
     boxes, ids = read_boxes(args.boxes, args.obj_ids)
-    preds = est.predict(image, K, boxes, ids, tta=args.tta, top_k=args.top_k, refine=args.refine)
+    preds = est.predict(image, K, boxes, ids, tta=args.tta, top_k=args.top_k, refine=args.refine,
+                        tta_mode=args.tta_mode)
     rows = [
         {"obj_id": p.obj_id, "bbox": p.box.tolist(), "R": p.R.astype(float).tolist(), "t": p.t.astype(float).tolist(),
          "score": p.score, "prob": p.prob,
