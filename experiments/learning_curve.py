@@ -12,7 +12,8 @@ A/B. Runs are sequential (two cores run one training at a time) and resumable: a
 skipped, an interrupted one resumed. Writes ``OUT/curves.csv`` (one row per run and checkpoint)
 and ``OUT/curves.png``; ``--test-images N`` also renders N test images of the objects (clutter,
 occlusion; the ``sc6d render`` set) and scores each run's final model on them with the BOP19 AR
-and the pose-error breakdown (``OUT/test.csv``). ``--test-dataset DIR`` scores each final model on
+and the pose-error breakdown (``OUT/test.csv``; ``--test-tta`` adds a row per run scored with
+fused test-time augmentation, ``sc6d predict --tta``). ``--test-dataset DIR`` scores each final model on
 an existing BOP test set instead (e.g. the real LM-O images, with ``--models DIR/models``; ground-
 truth boxes, only the targets of the trained objects): one row per run and object in
 ``OUT/test.csv``, and a pooled row (object ``all``) with the AR over those targets. The test set
@@ -150,6 +151,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="score each final model on this BOP test set (GT boxes; trained objects only)")
     p.add_argument("--from-run", action="append", default=[], metavar="NAME=RUN_DIR",
                    help="plot the validation records of an existing run (repeatable); trains nothing")
+    p.add_argument("--test-tta", action="store_true",
+                   help="also score each final model with fused test-time augmentation (sc6d predict --tta)")
     p.add_argument("--name", default="curves", help="file name of the CSV and the plot in OUT (default curves)")
     args = p.parse_args(argv)
     if args.from_run:
@@ -245,14 +248,14 @@ def _write_csv(path: Path, rows: list[dict], columns) -> None:
     tmp.replace(path)
 
 
-def _scores(run: Path, ds: Path, tag: str) -> dict:
+def _scores(run: Path, ds: Path, tag: str, predict_args: tuple[str, ...] = ()) -> dict:
     """The scores of a run's final model on the test set ``ds`` (``sc6d predict`` + ``sc6d eval``
     into ``run/{tag}_results.csv`` and ``run/{tag}_scores.json``; kept, so a rerun skips them)."""
     from sc6d_jax.cli import main as sc6d
 
     res, scores = run / f"{tag}_results.csv", run / f"{tag}_scores.json"
     if not scores.is_file():
-        for cmd in (["predict", "--run", str(run), "--dataset", str(ds), "--out", str(res)],
+        for cmd in (["predict", "--run", str(run), "--dataset", str(ds), "--out", str(res), *predict_args],
                     ["eval", "--dataset", str(ds), "--results", str(res), "--out", str(scores)]):
             rc = sc6d(cmd)
             if rc != 0:
@@ -275,12 +278,17 @@ def _test(args, out: Path, models: Path, names: list[str]) -> None:
             raise SystemExit(rc)
     rows = []
     for name in names:
-        sc = _scores(out / name, ds, "test")
-        b = sc.get("breakdown", {}).get("overall", {})
-        rows.append({"config": name, "ar": sc["bop19_average_recall"], "rot_median_deg": b.get("rot_median_deg"),
-                     "depth_rel_median": b.get("depth_rel_median"), "centre_median_px": b.get("centre_median_px")})
-        print(f"{name:>16}: test AR {rows[-1]['ar']:.3f}, rotation {b.get('rot_median_deg')}, depth {b.get('depth_rel_median')}")
-    _write_csv(out / "test.csv", rows, ("config", "ar", "rot_median_deg", "depth_rel_median", "centre_median_px"))
+        for tta in ("none", "fuse") if args.test_tta else ("none",):
+            sc = _scores(out / name, ds, "test" if tta == "none" else "test_tta", () if tta == "none" else ("--tta",))
+            b = sc.get("breakdown", {}).get("overall", {})
+            rows.append({"config": name, "tta": tta, "ar": sc["bop19_average_recall"],
+                         **{k: sc.get(f"bop19_average_recall_{k[3:]}") for k in ("ar_vsd", "ar_mssd", "ar_mspd")},
+                         "rot_median_deg": b.get("rot_median_deg"), "depth_rel_median": b.get("depth_rel_median"),
+                         "centre_median_px": b.get("centre_median_px")})
+            print(f"{name:>16} (TTA {tta}): test AR {rows[-1]['ar']:.3f}, rotation {b.get('rot_median_deg')}, "
+                  f"depth {b.get('depth_rel_median')}")
+    _write_csv(out / "test.csv", rows, ("config", "tta", "ar", "ar_vsd", "ar_mssd", "ar_mspd", "rot_median_deg",
+                                        "depth_rel_median", "centre_median_px"))
 
 
 BREAKDOWN_COLUMNS = ("rot_median_deg", "depth_rel_median", "centre_median_px", "rot_under_10", "rot_over_90")
