@@ -178,6 +178,12 @@ def test_export_round_trip(est, scene, tmp_path):
     np.testing.assert_allclose(got["t"], ref["t"], rtol=1e-5)
     with pytest.raises(ValueError, match="uint8"):
         f(crops.astype(np.float32), Kb, center, side, idx)
+    # fused TTA exports too (the four copies and the pooled candidates inside the one function)
+    f4 = load_exported(est.export(tmp_path / "predictor_tta.npz", tta=True))
+    assert f4.meta["tta"] is True and f4.meta["tta_mode"] == "fuse"
+    got, ref = f4(crops, Kb, center, side, idx), est.predict_crops(crops, Kb, center, side, idx, tta=True)
+    np.testing.assert_allclose(got["R"], ref["R"], atol=1e-5)
+    np.testing.assert_allclose(got["score"], ref["score"], atol=1e-5)
 
 
 def test_library_cache_and_key(run_dir, est):
