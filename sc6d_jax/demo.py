@@ -5,10 +5,11 @@
 3. runs the render-and-check (renderer vs geometry; a picture),
 4. with a model (the shipped ``builtin`` model by default, ``--run RUN_DIR`` for another, or
    ``--train`` to train one with the ``cpu`` preset first): predicts every target from the
-   ground-truth visible boxes (with fused 4-fold test-time augmentation; ``--no-tta`` without), evaluates with the BOP19 metrics, prints the AR table (overall,
-   symmetric, asymmetric objects) and the pose-error breakdown (median rotation, depth and
-   centre errors) and writes pictures: overlays of the estimated poses,
-   rotation distributions on the sphere and AR per object.
+   ground-truth visible boxes (with fused 4-fold test-time augmentation; ``--no-tta`` without),
+   evaluates with the BOP19 metrics, prints the AR table (overall, symmetric, asymmetric
+   objects) and the pose-error breakdown (median rotation, depth and centre errors) and writes
+   pictures: overlays of the estimated poses, rotation distributions on the sphere and AR per
+   object.
 
 Everything goes under ``--out`` (default ``sc6d-demo/``).
 """

@@ -27,7 +27,7 @@ from sc6d_jax.inference._library import (
     load_or_build_library,
     pack_library,
 )
-from sc6d_jax.inference._predictor import TTA_MODES, predict_crops
+from sc6d_jax.inference._predictor import predict_crops
 
 CROP_PAD = 1.5
 #: Rows per library block in the estimator (see Estimator.packed_library).
@@ -163,8 +163,6 @@ class Estimator:
                  tta_mode: str = "fuse"):
         """``f(params, blocks, lib_R, rgb, K, center, side, obj_idx) -> dict`` (jitted, static
         options bound) and its library arguments, for a batch of ``batch`` crops."""
-        if tta_mode not in TTA_MODES:
-            raise ValueError(f"tta_mode must be one of {TTA_MODES}, got {tta_mode!r}")
         blocks, n = self.packed_library()
         kw = dict(mcfg=self.mcfg, lcfg=self.lcfg, z_range=self.z_range, n_valid=n, tta=tta,
                   top_k=top_k, refine=refine, tau=self.tau, tta_mode=tta_mode)

@@ -177,17 +177,17 @@ def predict_crops(
     prob = m.prob.reshape(n_copies, B, k_match)
     emb = emb.reshape(n_copies, B, -1)
 
-    # best copy per crop (by top-1 cosine); undo each copy's in-plane turn
-    best = jnp.argmax(score[:, :, 0], axis=0) if tta else jnp.zeros((B,), jnp.int32)
-    undo = jnp.stack([rz90(-k) for k in range(n_copies)])  # (C,3,3)
-    take = lambda a: jnp.take_along_axis(a, best.reshape((1, B) + (1,) * (a.ndim - 2)), axis=0)[0]
-    idx_b, score_b, prob_b, emb_b = take(idx), take(score), take(prob), take(emb)
-    head = params.get("rot_head")
+    undo = jnp.stack([rz90(-k) for k in range(n_copies)])  # (C,3,3): undo each copy's in-plane turn
+    head = params["rot_head"]
     if fuse:
         # each copy's log normaliser over the library, from its top-1 cosine and probability
         log_z = score[:, :, 0] / tau - jnp.log(jnp.maximum(prob[:, :, 0], 1e-30))
         R_allo_k, score_b, prob_b = _fuse_copies(head, mcfg, emb, lib_R[idx], log_z, tau, obj_idx, top_k, refine)
     else:
+        # the best copy per crop (by top-1 cosine)
+        best = jnp.argmax(score[:, :, 0], axis=0) if tta else jnp.zeros((B,), jnp.int32)
+        take = lambda a: jnp.take_along_axis(a, best.reshape((1, B) + (1,) * (a.ndim - 2)), axis=0)[0]
+        idx_b, score_b, prob_b, emb_b = take(idx), take(score), take(prob), take(emb)
         undo_b = undo[best]  # (B,3,3)
         R_copy = lib_R[idx_b]  # (B,k,3,3) in the best copy's frame
         if refine:
