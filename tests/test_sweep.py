@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -141,6 +142,54 @@ def test_eval_figures_writes_pngs(ablation_dir, tmp_path):
     with pytest.raises(ValueError, match="only used with --figures"):
         main(["--dataset", str(out / "dataset"), "--results", str(out / "results" / "A4_s0.csv"),
               "--out", str(tmp_path / "s2.json"), "--run", str(out / "runs" / "A4_s0")])
+
+
+def test_ablation_oracle_rescores_each_run_with_one_head_from_the_ground_truth(ablation_dir):
+    import importlib.util
+
+    from sc6d_jax.bop import BopDataset, read_results_csv
+    from sc6d_jax.metrics import evaluate_bop19
+
+    out, _ = ablation_dir
+    script = REPO / "experiments" / "ablation_oracle.py"
+    res = subprocess.run([sys.executable, str(script), "--out", str(out), "--seeds", "0"], capture_output=True,
+                         text=True, timeout=300)
+    assert res.returncode == 0, res.stdout + res.stderr
+    for name in ("A4_s0", "TTA_s0"):
+        for v in ("gtR", "gtt"):
+            sc = json.loads((out / "oracle" / f"{name}.{v}.json").read_text())
+            assert 0.0 <= sc["bop19_average_recall"] <= 1.0
+    rows = {r["row"]: r for r in _read_csv(out / "oracle.csv")}
+    assert set(rows) == {"A4", "TTA"} and rows["A4"]["n_seeds"] == "1"
+    assert float(rows["A4"]["AR_mean"]) == pytest.approx(json.loads((out / "scores" / "A4_s0.json").read_text())
+                                                         ["bop19_average_recall"], abs=1e-4)
+    md = (out / "oracle.md").read_text()
+    assert "| A4 | 0 |" in md and "| TTA - A4 | TTA | 1 |" in md
+    # a rerun reads the stored scores back instead of scoring again
+    before = {p: p.stat().st_mtime_ns for p in (out / "oracle").iterdir()}
+    res = subprocess.run([sys.executable, str(script), "--out", str(out), "--seeds", "0"], capture_output=True,
+                         text=True, timeout=120)
+    assert res.returncode == 0 and {p: p.stat().st_mtime_ns for p in (out / "oracle").iterdir()} == before
+
+    spec = importlib.util.spec_from_file_location("ablation_oracle", script)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    ds = BopDataset(out / "dataset")
+    ests = read_results_csv(out / "results" / "A4_s0.csv")
+    gt_r = mod.oracle_estimates(ds, ests, "gtR")
+    assert [e.t.tolist() for e in gt_r] == [e.t.tolist() for e in ests]  # only the rotation changes
+    e = gt_r[0]
+    g = [g for g in ds.scene_gt(e.scene_id)[e.im_id] if g.obj_id == e.obj_id]
+    assert any(np.allclose(e.R, np.asarray(x.R).reshape(3, 3)) for x in g)
+    # both heads from the ground truth: every target is found, by all three errors
+    both = mod.oracle_estimates(ds, gt_r, "gtt")
+    assert evaluate_bop19(ds, both)["bop19_average_recall"] == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="variant must be one of"):
+        mod.oracle_estimates(ds, ests, "gtX")
+    res = subprocess.run([sys.executable, str(script), "--out", str(out.parent / "nothing")], capture_output=True,
+                         text=True, timeout=60)
+    assert res.returncode == 2 and "does not exist: run experiments/sweep.py ablation" in res.stderr
 
 
 def test_sweep_argument_errors(tmp_path):
