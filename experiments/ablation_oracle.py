@@ -4,7 +4,8 @@ of the seed spread each head causes.
     python experiments/ablation_oracle.py --out experiments/results/ablation [--seeds 0,1,2]
 
 For every finished run of ``experiments/sweep.py ablation`` (``DIR/results/NAME.csv``) it scores
-two rewritten copies of the results on the sweep's own test set (``DIR/dataset``):
+two rewritten copies of the results on the sweep's own test set (``DIR/dataset``; the rewrite is
+``sc6d_jax.metrics.with_ground_truth``, as ``sc6d eval --oracle``):
 
 - ``gtR``: every estimate's rotation replaced by the ground truth's (the instance the box was
   cut from, the most visible one of the object, as ``sc6d predict`` picks it): the AR the run's
@@ -22,15 +23,12 @@ them); the tables to ``DIR/oracle.csv`` and ``DIR/oracle.md``.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import importlib.util
 import json
 import math
 import sys
 from pathlib import Path
 from typing import Any, Sequence
-
-import numpy as np
 
 from sc6d_jax._subprocess import experiment_main
 
@@ -42,34 +40,20 @@ _spec.loader.exec_module(sweep)
 
 VARIANTS = (("gtR", "rotation from the ground truth (translation alone)"),
             ("gtt", "translation from the ground truth (rotation alone)"))
+_PART = {"gtR": "rotation", "gtt": "translation"}
 #: Which oracle isolates the head each of the paper's differences changes.
 DELTA_VARIANT = {"A1 - A0": "gtR", "A2 - A1": "gtR", "A3 - A2": "gtR", "A4 - A3": "gtR", "TTA - A4": "gtt",
                  "TTA - IPDF": "gtt"}
 
 
 def oracle_estimates(dataset: Any, estimates: Sequence[Any], variant: str) -> list[Any]:
-    """``estimates`` with R (``gtR``) or t (``gtt``) replaced by the ground truth of the instance
-    whose box they were predicted from: the most visible instance of the object in the image
-    (ties: the first). Estimates of objects without a visible instance are kept as they are."""
-    if variant not in dict(VARIANTS):
-        raise ValueError(f"variant must be one of {[v for v, _ in VARIANTS]}, got {variant!r}")
-    gt_cache: dict[int, tuple[dict, dict]] = {}
-    out = []
-    for e in estimates:
-        if e.scene_id not in gt_cache:
-            gt_cache[e.scene_id] = (dataset.scene_gt(e.scene_id), dataset.scene_gt_info(e.scene_id))
-        gts, infos = gt_cache[e.scene_id][0].get(e.im_id, []), gt_cache[e.scene_id][1].get(e.im_id, [])
-        cand = [(gi.px_count_visib, -i, g) for i, (g, gi) in enumerate(zip(gts, infos))
-                if g.obj_id == e.obj_id and gi.px_count_visib > 0]
-        if not cand:
-            out.append(e)
-            continue
-        g = max(cand, key=lambda c: (c[0], c[1]))[2]
-        if variant == "gtR":
-            out.append(dataclasses.replace(e, R=np.asarray(g.R, np.float64).reshape(3, 3)))
-        else:
-            out.append(dataclasses.replace(e, t=np.asarray(g.t, np.float64).reshape(3)))
-    return out
+    """``estimates`` with R (``gtR``) or t (``gtt``) from the ground truth
+    (:func:`sc6d_jax.metrics.with_ground_truth`)."""
+    from sc6d_jax.metrics import with_ground_truth
+
+    if variant not in _PART:
+        raise ValueError(f"variant must be one of {list(_PART)}, got {variant!r}")
+    return with_ground_truth(dataset, estimates, _PART[variant])
 
 
 def score_oracles(out: Path, names: Sequence[str]) -> dict[str, dict[str, float]]:

@@ -260,3 +260,22 @@ def test_eval_cli_breakdown_on_a_rendered_dataset(models, tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "pose-error breakdown" in printed and "rot_med" in printed
     assert "by visible fraction of the target:" in printed
+    # --oracle: one part of every pose from the ground truth; the other part's errors stay
+    for part, rot_ok, depth_ok in (("rotation", n - 1, n - n_depth - 1), ("translation", n - n_rot - 1, n - 1)):
+        o = tmp_path / f"oracle_{part}.json"
+        assert main(["--dataset", str(root), "--results", str(csv), "--out", str(o), "--no-vsd", "--no-progress",
+                     "--oracle", part]) == 0
+        so = json.loads(o.read_text())
+        assert so["oracle"] == part
+        bo = so["breakdown"]["overall"]
+        assert bo["missed"] == 1  # a missing estimate is not made up
+        assert bo["rot_under_5"] == pytest.approx(rot_ok / n)
+        assert bo["depth_under_2pct"] == pytest.approx(depth_ok / n)
+    assert "oracle: every estimate's translation taken from the ground truth" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="--oracle and --figures do not go together"):
+        main(["--dataset", str(root), "--results", str(csv), "--out", str(tmp_path / "x.json"), "--oracle", "rotation",
+              "--figures", str(tmp_path / "f")])
+    from sc6d_jax.metrics import with_ground_truth
+
+    with pytest.raises(ValueError, match="oracle part must be one of"):
+        with_ground_truth(ds, ests, "scale")

@@ -7,7 +7,9 @@ key names), ``evaluate_images`` / ``compute_errors`` / ``score_errors`` (in-memo
 ``VsdRenderer`` (depth for VSD in the toolkit's pixel convention); the threshold grids; the
 pose-error breakdown (``rotation_error_deg``, ``pose_errors``, ``breakdown_errors``,
 ``summarize_breakdown``, ``symmetry_rotations``, ``format_breakdown_line``: median rotation,
-relative depth and projected-centre errors, stored by ``evaluate_bop19`` under ``breakdown``).
+relative depth and projected-centre errors, stored by ``evaluate_bop19`` under ``breakdown``);
+``with_ground_truth`` (estimates with their rotation or translation from the ground truth: what
+each head scores alone).
 The ``sc6d eval`` command lives in ``sc6d_jax.metrics.cli``.
 """
 
@@ -53,6 +55,7 @@ from sc6d_jax.metrics._pose_error import (
     transform_pts,
     vsd,
 )
+from sc6d_jax.metrics._oracle import ORACLE_PARTS, with_ground_truth
 from sc6d_jax.metrics._symmetry import symmetry_coverage, symmetry_transformations
 from sc6d_jax.metrics._vsd_renderer import VsdRenderer
 
@@ -60,6 +63,7 @@ __all__ = [
     "MAX_SYM_DISC_STEP",
     "MISS",
     "MSPD_THRESHOLDS",
+    "ORACLE_PARTS",
     "MSSD_THRESHOLDS",
     "VISIBILITY_BINS",
     "VISIB_GT_MIN",
@@ -98,4 +102,5 @@ __all__ = [
     "te",
     "transform_pts",
     "vsd",
+    "with_ground_truth",
 ]

@@ -1,7 +1,7 @@
 """``sc6d eval``: BOP19 average recall of a results CSV on a BOP dataset.
 
     sc6d eval --dataset DIR --results METHOD_DATASET-SPLIT.csv --out SCORES.json [--split test]
-              [--figures FIG_DIR [--run RUN_DIR]]
+              [--figures FIG_DIR [--run RUN_DIR]] [--oracle rotation|translation]
 
 Prints a table (overall and per object) and writes the scores as JSON with the BOP toolkit's key
 names (bop19_average_recall, bop19_average_recall_vsd/_mssd/_mspd, bop19_average_time_per_image)
@@ -11,6 +11,11 @@ error [deg], median relative depth error, median projected-centre error [px], th
 under 5/10/20 deg and 2/5 % depth, overall and per object; a target without an estimate counts
 as a miss (180 deg, inf), and an infinite median is written as null. VSD needs depth images; where the dataset has none it is skipped, the
 AR is the mean of AR_MSSD and AR_MSPD, and the output says so.
+
+With ``--oracle rotation`` every estimate's rotation is replaced by the ground truth's before
+scoring (``--oracle translation``: its translation), so that the AR measures the other head
+alone (``sc6d_jax.metrics.with_ground_truth``; the scores JSON says ``"oracle"``): the two
+oracles beside the plain AR show which head holds a model back.
 
 With ``--figures DIR`` it then writes pictures (``sc6d_jax.viz.write_eval_figures``): overlays of
 the estimated poses on the first images, a per-object AR bar chart and, with ``--run RUN_DIR``
@@ -135,6 +140,9 @@ def main(argv: list[str]) -> int:
                                                      "rotation distributions with --run)")
     ap.add_argument("--run", default=None, help="training run that made the results (rotation-distribution figures)")
     ap.add_argument("--n-images", type=int, default=4, help="images with overlays in --figures (default 4)")
+    ap.add_argument("--oracle", choices=("rotation", "translation"), default=None,
+                    help="take this part of every pose from the ground truth (the AR then measures the other "
+                         "head alone)")
     args = ap.parse_args(argv)
     if args.run is not None and args.figures is None:
         raise ValueError("--run is only used with --figures DIR")
@@ -142,6 +150,8 @@ def main(argv: list[str]) -> int:
         from sc6d_jax.pretrained import check_run
 
         check_run(args.run)
+    if args.oracle is not None and args.figures is not None:
+        raise ValueError("--oracle and --figures do not go together: the figures show the results as they are")
     if args.n_images < 0:
         raise ValueError(f"--n-images must be >= 0, got {args.n_images}")
 
@@ -150,6 +160,10 @@ def main(argv: list[str]) -> int:
 
     ds = BopDataset(args.dataset, split=args.split)
     estimates = read_results_csv(args.results)
+    if args.oracle is not None:
+        from sc6d_jax.metrics._oracle import with_ground_truth
+
+        estimates = with_ground_truth(ds, estimates, args.oracle)
     scores = evaluate_bop19(
         ds, estimates, renderer=None if args.no_vsd else "auto", visib_gt_min=args.visib_gt_min,
         progress=not args.no_progress,
@@ -159,6 +173,10 @@ def main(argv: list[str]) -> int:
     scores["dataset"] = Path(args.dataset).name
     scores["split"] = args.split
     scores["results"] = Path(args.results).name
+    if args.oracle is not None:
+        scores["oracle"] = args.oracle
+        print(f"oracle: every estimate's {args.oracle} taken from the ground truth (the AR measures the "
+              f"{'translation' if args.oracle == 'rotation' else 'rotation'} alone)")
     print(format_table(scores))
     atomic_write_json(args.out, _jsonable(scores))
     print(f"scores written to {args.out}")
