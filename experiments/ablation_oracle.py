@@ -17,7 +17,8 @@ over regression; focal loss; expectation; PE map) are then measured again with t
 held perfect, and the one that differs only in the rotation head (TTA - IPDF) with the
 translation held perfect: what is left is that head's effect without the other head's
 seed-to-seed noise. Scores go to ``DIR/oracle/NAME.gtR.json`` / ``.gtt.json`` (a rerun skips
-them); the tables to ``DIR/oracle.csv`` and ``DIR/oracle.md``.
+them); the tables to ``DIR/oracle.csv``, ``DIR/oracle_deltas.csv`` and ``DIR/oracle.md``, the
+bars to ``DIR/oracle.png``.
 """
 
 from __future__ import annotations
@@ -138,6 +139,16 @@ def oracle_tables(out: Path, seeds: Sequence[int]) -> list[Path]:
                 "oracle_std", "oracle_separation"]
     written.append(atomic_write_text(out / "oracle_deltas.csv", sweep._csv_text(d_header, d_rows)))
     written.append(atomic_write_text(out / "oracle.md", "\n".join(md) + "\n"))
+    from sc6d_jax.viz import grouped_bar_chart, save_figure
+
+    labels = {"AR": "as run", "gtR": "rotation from GT", "gtt": "translation from GT"}
+    fig = grouped_bar_chart(
+        [r[0] for r in rows_csv],
+        {labels[k]: [r[3 + 2 * i] for r in rows_csv] for i, k in enumerate(keys)},
+        errors={labels[k]: [r[4 + 2 * i] for r in rows_csv] for i, k in enumerate(keys)},
+        ylabel="average recall", title="ablation runs with one head from the ground truth (mean ± std over seeds)",
+    )
+    written.append(save_figure(fig, out / "oracle.png"))
     return written
 
 

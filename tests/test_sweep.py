@@ -163,6 +163,7 @@ def test_ablation_oracle_rescores_each_run_with_one_head_from_the_ground_truth(a
     assert set(rows) == {"A4", "TTA"} and rows["A4"]["n_seeds"] == "1"
     assert float(rows["A4"]["AR_mean"]) == pytest.approx(json.loads((out / "scores" / "A4_s0.json").read_text())
                                                          ["bop19_average_recall"], abs=1e-4)
+    assert (out / "oracle.png").read_bytes()[:8] == PNG
     md = (out / "oracle.md").read_text()
     assert "| A4 | 0 |" in md and "| TTA - A4 | TTA | 1 |" in md
     # a rerun reads the stored scores back instead of scoring again
