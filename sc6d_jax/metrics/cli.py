@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from sc6d_jax._io import atomic_write_json
+from sc6d_jax.metrics._oracle import ORACLE_PARTS
 
 
 def _fmt(v: Any) -> str:
@@ -140,7 +141,7 @@ def main(argv: list[str]) -> int:
                                                      "rotation distributions with --run)")
     ap.add_argument("--run", default=None, help="training run that made the results (rotation-distribution figures)")
     ap.add_argument("--n-images", type=int, default=4, help="images with overlays in --figures (default 4)")
-    ap.add_argument("--oracle", choices=("rotation", "translation"), default=None,
+    ap.add_argument("--oracle", choices=ORACLE_PARTS, default=None,
                     help="take this part of every pose from the ground truth (the AR then measures the other "
                          "head alone)")
     args = ap.parse_args(argv)
