@@ -39,9 +39,8 @@ sweep = importlib.util.module_from_spec(_spec)
 sys.modules[_spec.name] = sweep  # dataclasses look their module up while the file runs
 _spec.loader.exec_module(sweep)
 
-VARIANTS = (("gtR", "rotation from the ground truth (translation alone)"),
-            ("gtt", "translation from the ground truth (rotation alone)"))
-_PART = {"gtR": "rotation", "gtt": "translation"}
+#: The oracle copies of each run (file suffix -> the part taken from the ground truth).
+VARIANTS = {"gtR": "rotation", "gtt": "translation"}
 #: Which oracle isolates the head each of the paper's differences changes.
 DELTA_VARIANT = {"A1 - A0": "gtR", "A2 - A1": "gtR", "A3 - A2": "gtR", "A4 - A3": "gtR", "TTA - A4": "gtt",
                  "TTA - IPDF": "gtt"}
@@ -52,9 +51,9 @@ def oracle_estimates(dataset: Any, estimates: Sequence[Any], variant: str) -> li
     (:func:`sc6d_jax.metrics.with_ground_truth`)."""
     from sc6d_jax.metrics import with_ground_truth
 
-    if variant not in _PART:
-        raise ValueError(f"variant must be one of {list(_PART)}, got {variant!r}")
-    return with_ground_truth(dataset, estimates, _PART[variant])
+    if variant not in VARIANTS:
+        raise ValueError(f"variant must be one of {list(VARIANTS)}, got {variant!r}")
+    return with_ground_truth(dataset, estimates, VARIANTS[variant])
 
 
 def score_oracles(out: Path, names: Sequence[str]) -> dict[str, dict[str, float]]:
@@ -68,13 +67,13 @@ def score_oracles(out: Path, names: Sequence[str]) -> dict[str, dict[str, float]
     ds = BopDataset(out / "dataset")
     (out / "oracle").mkdir(exist_ok=True)
     ar: dict[str, dict[str, float]] = {}
-    todo = [(n, v) for n in names for v, _ in VARIANTS if not (out / "oracle" / f"{n}.{v}.json").is_file()]
+    todo = [(n, v) for n in names for v in VARIANTS if not (out / "oracle" / f"{n}.{v}.json").is_file()]
     bar = tqdm(total=len(todo), desc="oracle", unit="score", file=sys.stderr, disable=not todo)
     for name in names:
         base = sweep._read_scores(out / "scores" / f"{name}.json")
         ar[name] = {"AR": float(base["bop19_average_recall"])}
         ests = None
-        for v, _ in VARIANTS:
+        for v in VARIANTS:
             p = out / "oracle" / f"{name}.{v}.json"
             if not p.is_file():
                 if ests is None:
@@ -97,42 +96,38 @@ def oracle_tables(out: Path, seeds: Sequence[int]) -> list[Path]:
     if not names:
         raise ValueError(f"{out}: no finished ablation run with results (scores/NAME.json + results/NAME.csv)")
     ar = score_oracles(out, names)
-    keys = ["AR"] + [v for v, _ in VARIANTS]
+    keys = ["AR", *VARIANTS]
     per_row: dict[str, dict[int, dict[str, float]]] = {}
     for n, vals in ar.items():
         row, seed = n.rsplit("_s", 1)
         per_row.setdefault(row, {})[int(seed)] = vals
-    rows_csv, md = [], ["Oracle rescoring of the ablation runs (`python experiments/ablation_oracle.py`): AR as run, "
-                        "with the ground-truth rotation (`gtR`: what the translation alone reaches) and with the "
-                        "ground-truth translation (`gtt`: what the rotation alone reaches); mean ± sample std over seeds.",
-                        "", "| row | seeds | AR | AR, rotation from GT | AR, translation from GT |", "|---|---|---|---|---|"]
+    stats, md = [], ["Oracle rescoring of the ablation runs (`python experiments/ablation_oracle.py`): AR as run, "
+                     "with the ground-truth rotation (`gtR`: what the translation alone reaches) and with the "
+                     "ground-truth translation (`gtt`: what the rotation alone reaches); mean ± sample std over seeds.",
+                     "", "| row | seeds | AR | AR, rotation from GT | AR, translation from GT |", "|---|---|---|---|---|"]
     for r in sweep.ROWS:
         d = per_row.get(r.name, {})
         if not d:
             continue
         st = {k: sweep._mean_std([d[s][k] for s in sorted(d)]) for k in keys}
-        rows_csv.append([r.name, r.label, len(d)] + [x for k in keys for x in st[k]])
+        stats.append((r, len(d), st))
         md.append(f"| {r.name} | {','.join(map(str, sorted(d)))} | " + " | ".join(sweep._fmt(*st[k]) for k in keys) + " |")
+    rows_csv = [[r.name, r.label, n] + [x for k in keys for x in st[k]] for r, n, st in stats]
     md += ["", "The paper's differences, measured as run and with the other head held perfect (paired over "
            "seeds; separation = |mean| / the larger of the two rows' seed std of that AR):", "",
            "| difference | what | seeds | paper | as run | separation | oracle | with the oracle | separation |",
            "|---|---|---|---|---|---|---|---|---|"]
+    deltas = {k: sweep.ablation_deltas(per_row, k) for k in keys}
     d_rows = []
-    for a, b, what in sweep.DELTAS:
-        key = f"{a} - {b}"
-        v = DELTA_VARIANT[key]
-        seeds_ab = sorted(set(per_row.get(a, {})) & set(per_row.get(b, {})))
-        res = {}
-        for k in ("AR", v):
-            m, s = sweep._mean_std([per_row[a][sd][k] - per_row[b][sd][k] for sd in seeds_ab])
-            spread = max(sweep._mean_std([per_row[r][sd][k] for sd in seeds_ab])[1] for r in (a, b)) if seeds_ab else math.nan
-            res[k] = (m, s, abs(m) / spread if seeds_ab and spread > 0 else math.nan)
-        paper = sweep.PAPER_AR[a] - sweep.PAPER_AR[b]
-        d_rows.append([key, what, len(seeds_ab), paper, *res["AR"], v, *res[v]])
-        f = lambda t: "-" if not seeds_ab else f"{t[0]:+.3f} ± {t[1]:.3f}"
-        g = lambda t: "-" if not math.isfinite(t[2]) else f"{t[2]:.1f}"
-        md.append(f"| {key} | {what} | {len(seeds_ab)} | {paper:+.3f} | {f(res['AR'])} | {g(res['AR'])} | {v} | "
-                  f"{f(res[v])} | {g(res[v])} |")
+    for i, d in enumerate(deltas["AR"]):
+        v = DELTA_VARIANT[d["delta"]]
+        o = deltas[v][i]
+        d_rows.append([d["delta"], d["what"], d["n_seeds"], d["paper"], d["mean"], d["std"], d["separation"], v,
+                       o["mean"], o["std"], o["separation"]])
+        f = lambda x: "-" if not x["n_seeds"] else f"{x['mean']:+.3f} ± {x['std']:.3f}"
+        g = lambda x: "-" if not math.isfinite(x["separation"]) else f"{x['separation']:.1f}"
+        md.append(f"| {d['delta']} | {d['what']} | {d['n_seeds']} | {d['paper']:+.3f} | {f(d)} | {g(d)} | {v} | "
+                  f"{f(o)} | {g(o)} |")
     header = ["row", "description", "n_seeds"] + [f"{k}_{s}" for k in keys for s in ("mean", "std")]
     written = [atomic_write_text(out / "oracle.csv", sweep._csv_text(header, rows_csv))]
     d_header = ["delta", "what", "n_seeds", "paper", "mean", "std", "separation", "oracle", "oracle_mean",
@@ -143,9 +138,9 @@ def oracle_tables(out: Path, seeds: Sequence[int]) -> list[Path]:
 
     labels = {"AR": "as run", "gtR": "rotation from GT", "gtt": "translation from GT"}
     fig = grouped_bar_chart(
-        [r[0] for r in rows_csv],
-        {labels[k]: [r[3 + 2 * i] for r in rows_csv] for i, k in enumerate(keys)},
-        errors={labels[k]: [r[4 + 2 * i] for r in rows_csv] for i, k in enumerate(keys)},
+        [r.name for r, _, _ in stats],
+        {labels[k]: [st[k][0] for _, _, st in stats] for k in keys},
+        errors={labels[k]: [st[k][1] for _, _, st in stats] for k in keys},
         ylabel="average recall", title="ablation runs with one head from the ground truth (mean ± std over seeds)",
     )
     written.append(save_figure(fig, out / "oracle.png"))

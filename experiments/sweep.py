@@ -239,16 +239,17 @@ def _run_values(sc: dict[str, Any]) -> dict[str, float]:
     return vals
 
 
-def ablation_deltas(per_seed: dict[str, dict[int, dict[str, float]]]) -> list[dict[str, Any]]:
+def ablation_deltas(per_seed: dict[str, dict[int, dict[str, float]]], key: str = "AR") -> list[dict[str, Any]]:
     """The paper's row differences (:data:`DELTAS`) measured on the seeds both rows finished:
-    the mean and sample std of the paired AR differences, the larger of the two rows' seed
-    spreads, how many of those spreads the difference is, and whether the paper's sign holds."""
+    the mean and sample std of the paired differences of ``key`` (the AR by default), the larger
+    of the two rows' seed spreads, how many of those spreads the difference is, and whether the
+    paper's sign holds."""
     out = []
     for a, b, what in DELTAS:
         seeds = sorted(set(per_seed.get(a, {})) & set(per_seed.get(b, {})))
-        diffs = [per_seed[a][sd]["AR"] - per_seed[b][sd]["AR"] for sd in seeds]
+        diffs = [per_seed[a][sd][key] - per_seed[b][sd][key] for sd in seeds]
         mean, std = _mean_std(diffs)
-        spread = max(_mean_std([per_seed[r][sd]["AR"] for sd in seeds])[1] for r in (a, b)) if seeds else float("nan")
+        spread = max(_mean_std([per_seed[r][sd][key] for sd in seeds])[1] for r in (a, b)) if seeds else float("nan")
         paper = PAPER_AR[a] - PAPER_AR[b]
         sep = abs(mean) / spread if seeds and spread > 0 else float("nan")
         same = "-" if not seeds else ("yes" if mean * paper > 0 else "no")

@@ -163,3 +163,20 @@ def test_bbox_extent_turns_bop_pixel_boxes_into_the_silhouettes_extent():
     np.testing.assert_array_equal(bbox_extent(np.array([[10, 20, 5, 7]] * 2)), [[9.5, 19.5, 6, 8]] * 2)
     with pytest.raises(ValueError, match="bbox"):
         bbox_extent([1, 2, 3])
+
+
+def test_most_visible_instances_ranks_by_visible_pixels_and_skips_empty_boxes():
+    from sc6d_jax.bop import GtInfo, GtPose, most_visible_instances
+
+    def gt(o):
+        return GtPose(o, np.eye(3), np.zeros(3))
+
+    def info(px, w=10):
+        return GtInfo((0, 0, 10, 10), (0, 0, w, 10), px, px, px, 1.0)
+
+    gts = [gt(1), gt(2), gt(1), gt(1), gt(1)]
+    infos = [info(50), info(900), info(80), info(50), info(999, w=0)]
+    # obj 1: 80 px first, then the two 50 px ones in file order; the empty visible box is left out
+    assert most_visible_instances(gts, infos, 1) == [2, 0, 3]
+    assert most_visible_instances(gts, infos, 2) == [1]
+    assert most_visible_instances(gts, infos, 7) == []

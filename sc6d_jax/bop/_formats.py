@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -59,6 +59,15 @@ def bbox_extent(bbox) -> np.ndarray:
         raise ValueError(f"bbox must be (x, y, w, h), got shape {b.shape}")
     return b + np.array([-0.5, -0.5, 1.0, 1.0])
 
+
+
+def most_visible_instances(gts: Sequence[GtPose], infos: Sequence[GtInfo], obj_id: int) -> list[int]:
+    """Indices into ``scene_gt`` of one image of the instances of ``obj_id`` with a non-empty
+    visible box, the most visible (``px_count_visib``) first, ties in file order: the instances
+    ``sc6d predict`` cuts its ground-truth boxes from (the first ``inst_count`` of them)."""
+    idx = [i for i, (g, gi) in enumerate(zip(gts, infos))
+           if g.obj_id == obj_id and gi.bbox_visib[2] > 0 and gi.bbox_visib[3] > 0]
+    return sorted(idx, key=lambda i: -infos[i].px_count_visib)
 
 @dataclass(frozen=True)
 class Target:

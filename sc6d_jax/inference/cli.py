@@ -107,7 +107,7 @@ def _read_detections(path: Path) -> dict[tuple[int, int], list[tuple[int, np.nda
 def predict_dataset(est, args) -> int:
     from tqdm import tqdm
 
-    from sc6d_jax.bop import BopDataset, PoseEstimate, bbox_extent, write_results_csv
+    from sc6d_jax.bop import BopDataset, PoseEstimate, bbox_extent, most_visible_instances, write_results_csv
 
     ds = BopDataset(args.dataset, split=args.split)
     targets = ds.targets()
@@ -132,13 +132,14 @@ def predict_dataset(est, args) -> int:
                 skipped_unknown += 1
                 continue
             if dets is None:
-                gts, gtis = infos[scene_id][0].get(im_id, []), infos[scene_id][1].get(im_id, [])
-                cand = [(gi.px_count_visib, bbox_extent(gi.bbox_visib), None)
-                        for g, gi in zip(gts, gtis) if g.obj_id == tg.obj_id and gi.bbox_visib[2] > 0 and gi.bbox_visib[3] > 0]
+                gtis = infos[scene_id][1].get(im_id, [])
+                best = most_visible_instances(infos[scene_id][0].get(im_id, []), gtis, tg.obj_id)
+                cand = [(bbox_extent(gtis[i].bbox_visib), None) for i in best]
             else:
-                cand = [(s, b, s) for (o, b, s) in dets.get((scene_id, im_id), []) if o == tg.obj_id and b[2] > 0 and b[3] > 0]
-            cand.sort(key=lambda c: -c[0])
-            for _, b, s in cand[: tg.inst_count]:
+                dl = sorted((d for d in dets.get((scene_id, im_id), []) if d[0] == tg.obj_id and d[1][2] > 0 and d[1][3] > 0),
+                            key=lambda d: -d[2])
+                cand = [(b, s) for (_, b, s) in dl]
+            for b, s in cand[: tg.inst_count]:
                 boxes.append(b)
                 ids.append(tg.obj_id)
                 scores.append(s)

@@ -14,14 +14,17 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from sc6d_jax.bop import most_visible_instances
+
 #: The parts of a pose an oracle can take from the ground truth.
 ORACLE_PARTS = ("rotation", "translation")
 
 
 def with_ground_truth(dataset: Any, estimates: Sequence[Any], part: str) -> list[Any]:
     """``estimates`` (``sc6d_jax.bop.PoseEstimate``) with ``part`` ("rotation" or "translation")
-    replaced by the ground truth of the most visible instance of the object in the image (ties:
-    the first in ``scene_gt``). Estimates of an object with no visible instance stay as they are.
+    replaced by the ground truth of the most visible instance of the object in the image
+    (``sc6d_jax.bop.most_visible_instances``, as ``sc6d predict`` picks its boxes). Estimates of
+    an object with no visible instance stay as they are.
 
     Args:
         dataset: a ``sc6d_jax.bop.BopDataset`` (its ``scene_gt`` and ``scene_gt_info``).
@@ -34,11 +37,11 @@ def with_ground_truth(dataset: Any, estimates: Sequence[Any], part: str) -> list
         if e.scene_id not in cache:
             cache[e.scene_id] = (dataset.scene_gt(e.scene_id), dataset.scene_gt_info(e.scene_id))
         gts, infos = cache[e.scene_id][0].get(e.im_id, []), cache[e.scene_id][1].get(e.im_id, [])
-        cand = [i for i, (g, gi) in enumerate(zip(gts, infos)) if g.obj_id == e.obj_id and gi.px_count_visib > 0]
-        if not cand:
+        best = most_visible_instances(gts, infos, e.obj_id)
+        if not best:
             out.append(e)
             continue
-        g = gts[max(cand, key=lambda i: (infos[i].px_count_visib, -i))]
+        g = gts[best[0]]
         if part == "rotation":
             out.append(dataclasses.replace(e, R=np.asarray(g.R, np.float64).reshape(3, 3)))
         else:

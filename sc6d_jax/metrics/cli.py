@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from sc6d_jax._io import atomic_write_json
-from sc6d_jax.metrics._oracle import ORACLE_PARTS
+from sc6d_jax.metrics._oracle import ORACLE_PARTS, with_ground_truth
 
 
 def _fmt(v: Any) -> str:
@@ -162,8 +162,6 @@ def main(argv: list[str]) -> int:
     ds = BopDataset(args.dataset, split=args.split)
     estimates = read_results_csv(args.results)
     if args.oracle is not None:
-        from sc6d_jax.metrics._oracle import with_ground_truth
-
         estimates = with_ground_truth(ds, estimates, args.oracle)
     scores = evaluate_bop19(
         ds, estimates, renderer=None if args.no_vsd else "auto", visib_gt_min=args.visib_gt_min,
