@@ -28,6 +28,11 @@ the long run's figure in the README, drawn from its last carried state (commit `
     python experiments/learning_curve.py --out experiments/results/learning_curves \\
         --name long_14objects --from-run long=experiments/state/long
 
+``--from-csv NAME=CSV:CONFIG`` (repeatable, alone or with ``--from-run``) takes the rows of one
+configuration from a CSV this script wrote earlier (``experiments/results/learning_curves/``), so a
+new run can be drawn beside a finished one whose run folder is gone; ``--x steps`` draws them
+against training steps, for runs timed on different machines.
+
 Curves longer than three hours are drawn against hours instead of minutes. A run continued under
 a changed stream or losses (``sc6d train --resume --amend``) gets a dotted line where it changed.
 """
@@ -100,8 +105,9 @@ def amendment_marks(name: str, run_dir: Path, rows: list[dict]) -> list[tuple[fl
     return marks
 
 
-def plot(rows: list[dict], path: Path, marks: list[tuple[float, str]] = ()) -> None:
-    """``marks``: (training minutes, label) drawn as vertical lines (mid-run config changes)."""
+def plot(rows: list[dict], path: Path, marks: list[tuple[float, str]] = (), x_axis: str = "minutes") -> None:
+    """``marks``: (training minutes, label) drawn as vertical lines (mid-run config changes).
+    ``x_axis``: "minutes" (training time) or "steps" (for runs from different machines)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -109,10 +115,11 @@ def plot(rows: list[dict], path: Path, marks: list[tuple[float, str]] = ()) -> N
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
     names = list(dict.fromkeys(r["config"] for r in rows))
-    hours = max((r["train_min"] for r in rows), default=0.0) > 180
+    steps = x_axis == "steps"
+    hours = not steps and max((r["train_min"] for r in rows), default=0.0) > 180
     for name in names:
         rs = [r for r in rows if r["config"] == name]
-        x = [r["train_min"] / 60 if hours else r["train_min"] for r in rs]
+        x = [r["step"] if steps else r["train_min"] / 60 if hours else r["train_min"] for r in rs]
         lines = [axes[i].plot(x, [r[k] * (100 if i == 2 else 1) for r in rs], "o-", label=name)[0]
                  for i, k in enumerate(("val_ar", "val_rot_median_deg", "val_depth_rel_median"))]
         raw = [(xi, r) for xi, r in zip(x, rs) if r.get("val_raw_ar") is not None]
@@ -125,7 +132,7 @@ def plot(rows: list[dict], path: Path, marks: list[tuple[float, str]] = ()) -> N
         for i, ax in enumerate(axes):
             ax.axvline(x_min / 60 if hours else x_min, color="0.4", ls=":", lw=1.2, label=label if i == 0 else None)
     for ax, t in zip(axes, ("validation AR (MSSD, MSPD)", "median rotation error [deg]", "median depth error [%]")):
-        ax.set_xlabel(f"training {'hours' if hours else 'minutes'} (2 CPU cores)")
+        ax.set_xlabel("training steps" if steps else f"training {'hours' if hours else 'minutes'} (2 CPU cores)")
         ax.set_title(t)
         ax.grid(alpha=0.3)
     axes[1].set_yscale("log")
@@ -151,11 +158,16 @@ def main(argv: list[str] | None = None) -> int:
                    help="score each final model on this BOP test set (GT boxes; trained objects only)")
     p.add_argument("--from-run", action="append", default=[], metavar="NAME=RUN_DIR",
                    help="plot the validation records of an existing run (repeatable); trains nothing")
+    p.add_argument("--from-csv", action="append", default=[], metavar="NAME=CSV:CONFIG",
+                   help="plot the rows of CONFIG in an earlier curves CSV as NAME (repeatable; with --from-run "
+                        "or alone); trains nothing")
+    p.add_argument("--x", choices=("minutes", "steps"), default="minutes",
+                   help="x axis of --from-run / --from-csv plots (steps: runs timed on different machines)")
     p.add_argument("--test-tta", action="store_true",
                    help="also score each final model with fused test-time augmentation (sc6d predict --tta)")
     p.add_argument("--name", default="curves", help="file name of the CSV and the plot in OUT (default curves)")
     args = p.parse_args(argv)
-    if args.from_run:
+    if args.from_run or args.from_csv:
         return _from_runs(args)
     os.environ.setdefault("MUJOCO_GL", "egl")
     try:
@@ -209,8 +221,36 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def csv_rows(name: str, path: Path, config: str) -> list[dict]:
+    """The rows of ``config`` in a curves CSV written by this script, renamed ``name``."""
+    rows = []
+    with open(path, newline="") as f:
+        for r in csv.DictReader(f):
+            if r["config"] != config:
+                continue
+            row: dict = {k: (float(v) if v not in ("", None) else None) for k, v in r.items() if k != "config"}
+            row["step"] = int(row["step"])
+            rows.append({**row, "config": name})
+    return rows
+
+
 def _from_runs(args) -> int:
-    """``--from-run``: the curves of existing runs, nothing trained."""
+    """``--from-run`` / ``--from-csv``: the curves of existing runs or CSVs, nothing trained."""
+    csv_parts = []
+    for item in args.from_csv:
+        name, sep, rest = item.partition("=")
+        path, sep2, config = rest.rpartition(":")
+        if not (sep and sep2 and name and path and config):
+            print(f"learning_curve: error: --from-csv expects NAME=CSV:CONFIG, got {item!r}", file=sys.stderr)
+            return 2
+        if not Path(path).is_file():
+            print(f"learning_curve: error: --from-csv {path}: no such file", file=sys.stderr)
+            return 2
+        got = csv_rows(name, Path(path), config)
+        if not got:
+            print(f"learning_curve: error: --from-csv {path}: no rows of config {config!r}", file=sys.stderr)
+            return 2
+        csv_parts.append((name, got))
     runs = []
     for item in args.from_run:
         name, sep, d = item.partition("=")
@@ -223,15 +263,16 @@ def _from_runs(args) -> int:
                   file=sys.stderr)
             return 2
         runs.append((name, run))
-    rows = [r for name, run in runs for r in curve_rows(name, run)]
+    rows = [r for name, run in runs for r in curve_rows(name, run)] + [r for _, got in csv_parts for r in got]
     if not rows:
         print("learning_curve: error: no validation records in those runs", file=sys.stderr)
         return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     _write_csv(out / f"{args.name}.csv", rows, COLUMNS)
-    plot(rows, out / f"{args.name}.png", [m for name, run in runs for m in amendment_marks(name, run, rows)])
-    for name, _ in runs:
+    plot(rows, out / f"{args.name}.png", [m for name, run in runs for m in amendment_marks(name, run, rows)],
+         x_axis=args.x)
+    for name in [n for n, _ in runs] + [n for n, _ in csv_parts]:
         last = [r for r in rows if r["config"] == name][-1]
         print(f"{name:>16}: step {last['step']}, {last['train_min']:.1f} min, val AR {last['val_ar']:.3f}, rotation "
               f"{last['val_rot_median_deg']:.1f} deg, depth {100 * last['val_depth_rel_median']:.2f} %")

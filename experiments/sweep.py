@@ -35,8 +35,9 @@ loss on the expectation-decoded depth to every depth head, which would blur the 
 rows measure (how the depth bins are trained and decoded). The rows keep the rest of the cpu
 recipe (GroupNorm(4), the focal-normalised depth code in log bins, the mask gate, local
 negatives): the paper's choices of those did not learn at CPU budgets (README, Learning curves).
-The ``medium`` budget also pins the learning rate its seed-0 runs trained with (0.002), so that
-a later change of the cpu preset does not split its seeds.
+The ``medium`` budget also pins the learning rate (0.002) and the pose decoder (the paper's S/16,
+``model.pose_downsample=2``) its runs trained with, so that a later change of the cpu preset does
+not split its seeds.
 """
 
 from __future__ import annotations
@@ -81,7 +82,8 @@ BUDGETS: dict[str, Budget] = {
     "medium": Budget(preset="cpu", steps=4000, obj_ids=(1, 3, 5, 8), scenes=4, images_per_scene=10,
                      objects_per_image=4, library_size=480_000,
                      so3_sizes=(20_000, 60_000, 180_000, 480_000, 1_440_000), seeds=(0, 1, 2),
-                     checkpoint_every=1000, train_sets=("loss.w_z_l1=0", "optim.lr=0.002"), workers=1),
+                     checkpoint_every=1000, train_sets=("loss.w_z_l1=0", "optim.lr=0.002", "model.pose_downsample=2"),
+                     workers=1),
     "full": Budget(preset="cpu", steps=None, obj_ids=None, scenes=4, images_per_scene=10, objects_per_image=5,
                    library_size=480_000, so3_sizes=(20_000, 60_000, 180_000, 480_000, 1_440_000), seeds=(0, 1, 2),
                    train_sets=("loss.w_z_l1=0",)),

@@ -174,6 +174,15 @@ def test_learning_curve_harness_writes_csv_and_plot(tmp_path, models):
     assert lc.amendment_marks("a", out / "a", parsed) == [
         (float(a_rows[-1]["train_min"]), f"a: from step {step:,}: stream.box_scale, stream.box_shift")]
     assert lc.main(["--out", str(tmp_path / "plots"), "--name", "amended", "--from-run", f"a={out / 'a'}"]) == 0
+    # --from-csv takes one configuration's rows from an earlier CSV (its run folder may be gone),
+    # beside a run; --x steps draws them against steps
+    assert lc.main(["--out", str(tmp_path / "plots"), "--name", "mixed", "--x", "steps", "--from-run", f"a={out / 'a'}",
+                    "--from-csv", f"old_b={out / 'curves.csv'}:b"]) == 0
+    mixed = list(csv.DictReader(open(tmp_path / "plots" / "mixed.csv")))
+    assert mixed == [r for r in rows if r["config"] == "a"] + [{**r, "config": "old_b"} for r in rows if r["config"] == "b"]
+    assert (tmp_path / "plots" / "mixed.png").stat().st_size > 10_000
+    assert lc.main(["--out", str(tmp_path / "plots"), "--from-csv", f"x={out / 'curves.csv'}:nosuch"]) == 2
+    assert lc.main(["--out", str(tmp_path / "plots"), "--from-csv", f"x={out / 'curves.csv'}"]) == 2
 
 
 def _harness():

@@ -54,6 +54,7 @@ def test_presets_roundtrip_through_json():
     assert (cpu.replace(steps=6000).curriculum_steps, cpu.replace(steps=6000).warmup_steps) == (1_800, 60)
     assert (cpu.model.gn_groups, cpu.loss.z_norm, cpu.loss.z_bins, cpu.model.mask_gate, cpu.loss.n_local_negatives) == (
         4, "focal", "log", True, 256)
+    assert cpu.model.pose_downsample == 1 and preset("tiny").model.pose_downsample == 2  # dilated block at S/8
     paper_loss = paper.loss
     assert (paper_loss.z_norm, paper_loss.z_bins, paper_loss.z_loss, paper.model.gn_groups) == ("none", "linear", "focal", 32)
     long = preset("long")
