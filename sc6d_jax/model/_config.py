@@ -63,7 +63,8 @@ class ModelConfig:
       the block runs at S/16 and the heads see S/32). 1 runs the block at S/8, the heads at
       S/16 (the second conv keeps its weights, with stride 1): for a 64-px crop the heads read
       a 4x4 map instead of 2x2, and the dilations 2-7 span that map as they span the paper's
-      16x16 at 256 px.
+      16x16 at 256 px. 0 runs the block at S/4 and the heads at S/8 (both convs stride 1): at
+      64 px the paper's map sizes at 256 px (block 16x16, heads 8x8).
     - z_rot: a per-object depth prior from the rotation: an MLP of the allocentric rotation
       (9 entries -> head_hidden -> head_hidden -> n_z_bins, output layer zero at init) whose
       logits are added to the image's z logits (:func:`with_z_prior`). With a box around the
@@ -116,8 +117,8 @@ class ModelConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name} must be a positive int, got {v!r}")
-        if self.pose_downsample not in (1, 2):
-            raise ValueError(f"pose_downsample must be 1 or 2, got {self.pose_downsample!r}")
+        if self.pose_downsample not in (0, 1, 2):
+            raise ValueError(f"pose_downsample must be 0, 1 or 2, got {self.pose_downsample!r}")
         if self.decoder_width < 0 or self.ipdf_pe_freqs < 0 or self.so3_pe_freqs < 0:
             raise ValueError("decoder_width, ipdf_pe_freqs and so3_pe_freqs must be >= 0")
 

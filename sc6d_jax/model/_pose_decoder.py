@@ -1,7 +1,8 @@
 """Pose decoder (paper Fig. "pose decoder", REFERENCE section 1), shared by all objects.
 
 features (S/4, feat_dim) ++ sigmoid(mask) -> 3x3/2 conv -> 3x3/2 conv (pose_width, S/16; with
-``pose_downsample=1`` the second conv has stride 1 and what follows runs at twice the size)
+``pose_downsample=1`` the second conv has stride 1 and what follows runs at twice the size, with
+``pose_downsample=0`` both have stride 1 and it runs at S/4)
 -> [itself, six 3x3 convs with dilation 2..7, global average pool broadcast] (8 * pose_width)
 -> three heads, each 3x3/2 conv (pose_width) + flatten + FC head_hidden + FC out:
 rotation embedding (emb_dim), delta_xy (2), z logits (n_z_bins).
@@ -79,7 +80,7 @@ def pose_decoder(
 ) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Returns (raw rotation feature (B,emb_dim), delta_xy (B,2), z logits (B,n_z_bins))."""
     x = jnp.concatenate([feat, jax.nn.sigmoid(mask_logit)[..., None]], axis=-1)
-    x = conv_gn_relu(x, params["down1"], cfg, stride=2)
+    x = conv_gn_relu(x, params["down1"], cfg, stride=2 if cfg.pose_downsample >= 1 else 1)
     x = conv_gn_relu(x, params["down2"], cfg, stride=2 if cfg.pose_downsample == 2 else 1)
     branches = [x]
     for d, p in zip(DILATIONS, params["dilated"]):
