@@ -289,12 +289,13 @@ def _write_csv(path: Path, rows: list[dict], columns) -> None:
     tmp.replace(path)
 
 
-def _scores(run: Path, ds: Path, tag: str, predict_args: tuple[str, ...] = ()) -> dict:
-    """The scores of a run's final model on the test set ``ds`` (``sc6d predict`` + ``sc6d eval``
-    into ``run/{tag}_results.csv`` and ``run/{tag}_scores.json``; kept, so a rerun skips them)."""
+def run_scores(run: str | Path, ds: Path, out: Path, tag: str, predict_args: tuple[str, ...] = ()) -> dict:
+    """The scores of a model (a run folder or a shipped name) on the test set ``ds``: ``sc6d predict``
+    + ``sc6d eval`` into ``out/{tag}_results.csv`` and ``out/{tag}_scores.json``; kept, so a rerun
+    skips them."""
     from sc6d_jax.cli import main as sc6d
 
-    res, scores = run / f"{tag}_results.csv", run / f"{tag}_scores.json"
+    res, scores = out / f"{tag}_results.csv", out / f"{tag}_scores.json"
     if not scores.is_file():
         for cmd in (["predict", "--run", str(run), "--dataset", str(ds), "--out", str(res), *predict_args],
                     ["eval", "--dataset", str(ds), "--results", str(res), "--out", str(scores)]):
@@ -302,6 +303,11 @@ def _scores(run: Path, ds: Path, tag: str, predict_args: tuple[str, ...] = ()) -
             if rc != 0:
                 raise SystemExit(rc)
     return json.loads(scores.read_text())
+
+
+def _scores(run: Path, ds: Path, tag: str, predict_args: tuple[str, ...] = ()) -> dict:
+    """A run's scores kept in the run's own folder (``run_scores``)."""
+    return run_scores(run, ds, run, tag, predict_args)
 
 
 def _test(args, out: Path, models: Path, names: list[str]) -> None:
@@ -336,16 +342,19 @@ BREAKDOWN_COLUMNS = ("rot_median_deg", "depth_rel_median", "centre_median_px", "
 TEST_DATASET_COLUMNS = ("config", "obj_id", "targets", "ar", "ar_mssd", "ar_mspd", "ar_vsd", *BREAKDOWN_COLUMNS)
 
 
-def dataset_rows(name: str, scores: dict, obj_ids: list[int]) -> list[dict]:
-    """Rows of one run's scores on a test set: one per trained object, then a pooled ``all`` row
-    (per-object recalls weighted by their targets: the recall the toolkit pools over targets)."""
-    per, bd = scores.get("per_object", {}), scores.get("breakdown", {}).get("per_object", {})
+def dataset_rows(name: str, scores: dict, obj_ids: list[int] | None, key: str = "config") -> list[dict]:
+    """Rows of one model's scores on a test set (``key`` = ``name``): one per object of ``obj_ids``
+    (every scored object when None), then a pooled ``all`` row (per-object recalls weighted by
+    their targets: the recall the toolkit pools over targets; with every object, also the
+    overall pose-error breakdown)."""
+    per, bd = scores.get("per_object", {}), scores.get("breakdown", {})
+    ids = sorted(int(k) for k in per) if obj_ids is None else obj_ids
     rows = []
-    for o in obj_ids:
-        d, b = per.get(str(o)), bd.get(str(o), {})
+    for o in ids:
+        d, b = per.get(str(o)), bd.get("per_object", {}).get(str(o), {})
         if d is None or not d.get("targets"):
             continue
-        rows.append({"config": name, "obj_id": o, "targets": int(d["targets"]), "ar": d["ar"], "ar_mssd": d["ar_mssd"],
+        rows.append({key: name, "obj_id": o, "targets": int(d["targets"]), "ar": d["ar"], "ar_mssd": d["ar_mssd"],
                      "ar_mspd": d["ar_mspd"], "ar_vsd": d.get("ar_vsd"),
                      **{k: b.get(k) for k in BREAKDOWN_COLUMNS}})
     n = sum(r["targets"] for r in rows)
@@ -353,7 +362,9 @@ def dataset_rows(name: str, scores: dict, obj_ids: list[int]) -> list[dict]:
         pooled = {k: sum(r[k] * r["targets"] for r in rows) / n for k in ("ar", "ar_mssd", "ar_mspd")}
         if all(r["ar_vsd"] is not None for r in rows):
             pooled["ar_vsd"] = sum(r["ar_vsd"] * r["targets"] for r in rows) / n
-        rows.append({"config": name, "obj_id": "all", "targets": n, **pooled})
+        over = bd.get("overall", {}) if obj_ids is None else {}
+        rows.append({key: name, "obj_id": "all", "targets": n, **pooled, **{k: over[k] for k in BREAKDOWN_COLUMNS
+                                                                             if k in over}})
     return rows
 
 

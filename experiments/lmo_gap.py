@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import os
 import sys
 from pathlib import Path
@@ -35,10 +34,12 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "experiments"))
+
+from learning_curve import BREAKDOWN_COLUMNS, dataset_rows, run_scores  # noqa: E402
 
 VERSIONS = ("real", "real_objects", "rendered_objects", "rendered")
-COLUMNS = ("version", "obj_id", "targets", "ar", "ar_mssd", "ar_mspd", "rot_median_deg", "depth_rel_median",
-           "centre_median_px", "rot_under_10", "rot_over_90")
+COLUMNS = ("version", "obj_id", "targets", "ar", "ar_mssd", "ar_mspd", *BREAKDOWN_COLUMNS)
 SHARED_FILES = ("camera.json", "test_targets_bop19.json", "models", "models_eval")
 SCENE_FILES = ("scene_camera.json", "scene_gt.json", "scene_gt_info.json")
 
@@ -101,41 +102,6 @@ def build_versions(dataset: Path, out: Path, seed: int) -> dict[str, Path]:
     return paths
 
 
-def score(run: str, ds: Path, out: Path, tag: str, tta: bool, library_size: int | None = None) -> dict:
-    """``sc6d predict`` + ``sc6d eval`` of ``run`` on ``ds`` (kept under ``out``; a rerun reuses them)."""
-    from sc6d_jax.cli import main as sc6d
-
-    res, sc = out / f"{tag}_results.csv", out / f"{tag}_scores.json"
-    if not sc.is_file():
-        for cmd in (["predict", "--run", run, "--dataset", str(ds), "--out", str(res), *(["--tta"] if tta else []),
-                     *([] if library_size is None else ["--library-size", str(library_size)])],
-                    ["eval", "--dataset", str(ds), "--results", str(res), "--out", str(sc)]):
-            rc = sc6d(cmd)
-            if rc != 0:
-                raise SystemExit(rc)
-    return json.loads(sc.read_text())
-
-
-def rows_of(version: str, scores: dict, obj_ids: list[int] | None) -> list[dict]:
-    """One row per object (``obj_ids`` or every scored one), then the pooled ``all`` row."""
-    per, bd = scores.get("per_object", {}), scores.get("breakdown", {})
-    ids = obj_ids or sorted(int(k) for k in per)
-    rows = []
-    for o in ids:
-        d, b = per.get(str(o)), bd.get("per_object", {}).get(str(o), {})
-        if d and d.get("targets"):
-            rows.append({"version": version, "obj_id": o, "targets": int(d["targets"]), "ar": d["ar"],
-                         "ar_mssd": d["ar_mssd"], "ar_mspd": d["ar_mspd"],
-                         **{k: b.get(k) for k in COLUMNS[6:]}})
-    if len(rows) > 1:
-        n = sum(r["targets"] for r in rows)
-        pooled = {k: sum(r[k] * r["targets"] for r in rows) / n for k in ("ar", "ar_mssd", "ar_mspd")}
-        over = bd.get("overall", {}) if obj_ids is None else {}
-        rows.append({"version": version, "obj_id": "all", "targets": n, **pooled,
-                     **{k: over.get(k) for k in COLUMNS[6:]}})
-    return rows
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--run", required=True, help="a training run directory or a shipped model name")
@@ -159,8 +125,10 @@ def main(argv: list[str] | None = None) -> int:
     paths = build_versions(a.dataset, a.out, a.seed)
     rows = []
     for v in VERSIONS:
-        got = rows_of(v, score(a.run, paths[v], a.out, v + ("_tta" if a.tta else ""), a.tta, a.library_size), obj_ids)
-        rows += got
+        predict_args = (*(["--tta"] if a.tta else []),
+                        *([] if a.library_size is None else ["--library-size", str(a.library_size)]))
+        sc = run_scores(a.run, paths[v], a.out, v + ("_tta" if a.tta else ""), predict_args)
+        rows += dataset_rows(v, sc, obj_ids, key="version")
     print(f"{'version':>16} {'obj':>4} {'n':>4} {'AR':>6} {'MSSD':>6} {'MSPD':>6} {'rot':>7} {'depth':>7} {'centre':>7}")
     for r in rows:
         rot, dep, cen = r.get("rot_median_deg"), r.get("depth_rel_median"), r.get("centre_median_px")
