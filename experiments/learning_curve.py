@@ -42,7 +42,9 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 import os
+import statistics
 import sys
 from pathlib import Path
 
@@ -51,7 +53,7 @@ sys.path.insert(0, str(ROOT))
 
 from sc6d_jax.train.loop import RAW_LOGGED as RAW  # noqa: E402  (validation of a moving average's raw parameters)
 
-COLUMNS = ("config", "step", "train_min", "crops_per_object", "val_ar", "val_rot_median_deg",
+COLUMNS = ("config", "step", "train_min", "crops_per_object", "val_ar", "val_ar_se", "val_rot_median_deg",
            "val_depth_rel_median", "val_centre_median_px", "val_rot_under_10", "val_rot_over_90",
            "val_depth_under_2pct", *RAW)
 
@@ -323,7 +325,7 @@ def _test(args, out: Path, models: Path, names: list[str]) -> None:
                    str(imgs), "--seed", "7", "--obj-ids", ids, "--objects-per-image", str(min(n_obj, 5))])
         if rc != 0:
             raise SystemExit(rc)
-    rows = []
+    rows, first = [], {}
     for name in names:
         for tta in ("none", "fuse") if args.test_tta else ("none",):
             sc = _scores(out / name, ds, "test" if tta == "none" else "test_tta", () if tta == "none" else ("--tta",))
@@ -331,15 +333,45 @@ def _test(args, out: Path, models: Path, names: list[str]) -> None:
             rows.append({"config": name, "tta": tta, "ar": sc["bop19_average_recall"],
                          **{k: sc.get(f"bop19_average_recall_{k[3:]}") for k in ("ar_vsd", "ar_mssd", "ar_mspd")},
                          "rot_median_deg": b.get("rot_median_deg"), "depth_rel_median": b.get("depth_rel_median"),
-                         "centre_median_px": b.get("centre_median_px")})
-            print(f"{name:>16} (TTA {tta}): test AR {rows[-1]['ar']:.3f}, rotation {b.get('rot_median_deg')}, "
-                  f"depth {b.get('depth_rel_median')}")
-    _write_csv(out / "test.csv", rows, ("config", "tta", "ar", "ar_vsd", "ar_mssd", "ar_mspd", "rot_median_deg",
-                                        "depth_rel_median", "centre_median_px"))
+                         "centre_median_px": b.get("centre_median_px"), **_uncertainty(sc, first.setdefault(tta, sc))})
+            r = rows[-1]
+            print(f"{name:>16} (TTA {tta}): test AR {r['ar']:.3f}{_pm(r['ar_se'])}{_vs(r, names[0])}, "
+                  f"rotation {b.get('rot_median_deg')}, depth {b.get('depth_rel_median')}")
+    _write_csv(out / "test.csv", rows, ("config", "tta", "ar", "ar_se", "ar_diff_vs_first", "ar_diff_se", "ar_vsd",
+                                        "ar_mssd", "ar_mspd", "rot_median_deg", "depth_rel_median",
+                                        "centre_median_px"))
+
+
+def _uncertainty(scores: dict, base: dict, obj_ids: list[int] | None = None) -> dict:
+    """AR's standard error over the targets (``ar_se``) and the paired difference from ``base``, the
+    first configuration's scores on the same targets (``ar_diff_vs_first`` +- ``ar_diff_se``):
+    None where the scores predate per-target shares."""
+    from sc6d_jax.metrics import paired_difference
+
+    keep = None if obj_ids is None else set(obj_ids)
+    shares = [r[4] for r in scores.get("per_target") or [] if keep is None or r[3] in keep]
+    out = {"ar_se": statistics.stdev(shares) / math.sqrt(len(shares)) if len(shares) > 1 else None,
+           "ar_diff_vs_first": None, "ar_diff_se": None}
+    if base is not scores and scores.get("per_target") and base.get("per_target"):
+        try:
+            out["ar_diff_vs_first"], out["ar_diff_se"], _ = paired_difference(base, scores, obj_ids)
+        except ValueError:
+            pass
+    return out
+
+
+def _pm(se: float | None) -> str:
+    return "" if se is None else f" +- {se:.3f}"
+
+
+def _vs(row: dict, first: str) -> str:
+    d = row.get("ar_diff_vs_first")
+    return "" if d is None else f" ({d:+.3f}{_pm(row.get('ar_diff_se'))} vs {first}, same targets)"
 
 
 BREAKDOWN_COLUMNS = ("rot_median_deg", "depth_rel_median", "centre_median_px", "rot_under_10", "rot_over_90")
-TEST_DATASET_COLUMNS = ("config", "obj_id", "targets", "ar", "ar_mssd", "ar_mspd", "ar_vsd", *BREAKDOWN_COLUMNS)
+TEST_DATASET_COLUMNS = ("config", "obj_id", "targets", "ar", "ar_se", "ar_diff_vs_first", "ar_diff_se", "ar_mssd",
+                        "ar_mspd", "ar_vsd", *BREAKDOWN_COLUMNS)
 
 
 def dataset_rows(name: str, scores: dict, obj_ids: list[int] | None, key: str = "config") -> list[dict]:
@@ -372,13 +404,18 @@ def _test_dataset(args, out: Path, names: list[str]) -> None:
     """Score every run's final model on an existing BOP test set (GT boxes, trained objects)."""
     ds = Path(args.test_dataset)
     obj_ids = [int(x) for x in args.obj_ids.split(",")]
-    rows = []
+    rows, first = [], None
     for name in names:
-        got = dataset_rows(name, _scores(out / name, ds, "testset"), obj_ids)
+        sc = _scores(out / name, ds, "testset")
+        first = first or sc
+        got = dataset_rows(name, sc, obj_ids)
+        for r in got:
+            r.update(_uncertainty(sc, first, obj_ids if r["obj_id"] == "all" else [r["obj_id"]]))
         rows += got
         for r in got:
             rot = r.get("rot_median_deg")
-            print(f"{name:>16}: object {r['obj_id']}: {r['targets']} targets, AR {r['ar']:.3f}"
+            print(f"{name:>16}: object {r['obj_id']}: {r['targets']} targets, AR {r['ar']:.3f}{_pm(r['ar_se'])}"
+                  + _vs(r, names[0])
                   + ("" if rot is None else f", rotation {rot:.1f} deg, depth {100 * r['depth_rel_median']:.1f} %"))
     _write_csv(out / "test.csv", rows, TEST_DATASET_COLUMNS)
 

@@ -53,6 +53,13 @@ def test_validator_scores_ground_truth_as_perfect(models, monkeypatch):
     s = v(None)
     assert s["val_rot_median_deg"] < 0.01 and s["val_depth_rel_median"] < 1e-6 and s["val_centre_median_px"] < 1e-3
     assert s["val_ar"] == pytest.approx(1.0) and s["val_rot_under_5"] == 1.0 and s["val_depth_under_2pct"] == 1.0
+    assert s["val_ar_se"] == pytest.approx(0.0)  # every crop passes every threshold
+    half = {k: a.copy() for k, a in gt.items()}
+    half["t"][::2, 0] += 5 * np.array([v.diam[int(o)] for o in v.data["obj_id"][::2]])  # every other crop far off
+    monkeypatch.setattr(v, "predict", lambda params: half)
+    s = v(None)
+    share = np.tile([0.0, 1.0], 12)
+    assert s["val_ar"] == pytest.approx(0.5) and s["val_ar_se"] == pytest.approx(np.std(share, ddof=1) / np.sqrt(24))
     far = {"R": gt["R"], "t": gt["t"] * 1.10}  # 10 % farther along the ray: depth error 0.10, centre 0
     monkeypatch.setattr(v, "predict", lambda params: far)
     s = v(None)
@@ -216,6 +223,30 @@ def test_learning_curve_test_dataset_rows_pool_the_trained_objects(tmp_path, cap
     assert lc.main(["--out", str(tmp_path / "o"), "--test-dataset", str(tmp_path)]) == 2
     assert "not a BOP test set" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_learning_curve_test_rows_carry_standard_errors_and_paired_differences(tmp_path, capsys):
+    """The harness's test table from two runs' scores on the same targets (kept scores: nothing is
+    predicted again): AR +- its standard error, and the second run's paired difference."""
+    import argparse
+    import json
+
+    lc = _harness()
+    shares = {"a": [1.0, 0.5, 0.0, 0.5], "b": [1.0, 1.0, 0.0, 1.0]}
+    for name, sh in shares.items():
+        (tmp_path / name).mkdir()
+        sc = {"bop19_average_recall": float(np.mean(sh)), "bop19_average_recall_mssd": 0.0,
+              "bop19_average_recall_mspd": 0.0, "bop19_average_recall_vsd": None, "breakdown": {"overall": {}},
+              "per_target": [[1, i, 0, 1, x] for i, x in enumerate(sh)]}
+        (tmp_path / name / "test_scores.json").write_text(json.dumps(sc))
+    (tmp_path / "testset").mkdir()
+    lc._test(argparse.Namespace(obj_ids="1", test_images=4, test_tta=False), tmp_path, tmp_path, ["a", "b"])
+    rows = list(csv.DictReader(open(tmp_path / "test.csv")))
+    assert float(rows[0]["ar_se"]) == pytest.approx(np.std(shares["a"], ddof=1) / 2)
+    assert rows[0]["ar_diff_vs_first"] == ""
+    assert float(rows[1]["ar_diff_vs_first"]) == pytest.approx(0.25)
+    assert float(rows[1]["ar_diff_se"]) == pytest.approx(np.std([0, 0.5, 0, 0.5], ddof=1) / 2)
+    assert "+0.250 +- 0.144 vs a" in capsys.readouterr().out
 
 
 @pytest.mark.slow

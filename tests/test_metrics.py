@@ -24,6 +24,7 @@ from sc6d_jax.metrics import (
     evaluate_images,
     make_object_model,
     mspd,
+    paired_difference,
     mssd,
     re,
     te,
@@ -354,6 +355,40 @@ def test_ar_visibility_threshold_and_mspd_width_normalisation():
     r1280 = evaluate_images([EvalImage(1, 0, K, 1280, 960, one, {1: 1})], e, models)["recalls"]["mspd"]
     assert r640 == [0.0, 0.0] + [1.0] * 8
     assert r1280 == [0.0] + [1.0] * 9
+
+
+def test_per_target_shares_average_to_ar_and_give_its_standard_error():
+    """Greedy case above (14/20 and 16/20 MSSD) plus a second image with one far-off estimate:
+    each target's share is the fraction of thresholds it is matched at (mean over MSSD, MSPD)."""
+    d = 100.0
+    R, t = pose(t=(0.0, 0.0, 800.0))
+    models = {1: make_object_model(1, {"diameter": d}, asym_points())}
+    gts = [GroundTruth(1, R, t, 1.0), GroundTruth(1, R, _shift(t, 0.33 * d), 1.0)]
+    imgs = [EvalImage(1, 0, K, 640, 480, gts, {1: 2}), EvalImage(1, 1, K, 640, 480, [gts[0]], {1: 1})]
+    ests = [Est(1, 0.9, R, _shift(t, 0.12 * d)), Est(1, 0.5, R, t)]
+    far = Est(1, 1.0, R, _shift(t, 2 * d), im_id=1)
+    s = evaluate_images(imgs, [*ests, far], models)
+    shares = [r[4] for r in s["per_target"]]
+    assert [r[:4] for r in s["per_target"]] == [[1, 0, 0, 1], [1, 0, 1, 1], [1, 1, 0, 1]]
+    assert np.mean(shares) == pytest.approx(s["bop19_average_recall"])
+    assert shares[0] == pytest.approx(1.0)  # A: matched at every MSSD and MSPD threshold
+    # B: MSSD for th > 0.33 only (4 of 10); MSPD once est_b reaches it: 0.33 d at 800 mm is up to
+    # 25.7 px for the model's nearest points, so from 30 px on (5 of 10)
+    assert shares[1] == pytest.approx((4 / 10 + 5 / 10) / 2)
+    assert shares[2] == 0.0
+    assert s["average_recall_standard_error"] == pytest.approx(np.std(shares, ddof=1) / math.sqrt(3))
+    # the same targets scored with the far estimate replaced by a perfect one: +1 on one target of 3
+    good = Est(1, 1.0, R, t, im_id=1)
+    s2 = evaluate_images(imgs, [*ests, good], models)
+    diff, se, n = paired_difference(s, s2)
+    assert n == 3 and diff == pytest.approx(1 / 3) and diff == pytest.approx(
+        s2["bop19_average_recall"] - s["bop19_average_recall"])
+    assert se == pytest.approx(np.std([0, 0, 1], ddof=1) / math.sqrt(3))
+    assert paired_difference(s, s2, obj_ids=[1])[0] == pytest.approx(diff)
+    with pytest.raises(ValueError, match="no targets"):
+        paired_difference(s, s2, obj_ids=[2])
+    one = evaluate_images(imgs[1:], [good], models)
+    assert one["average_recall_standard_error"] is None  # one target
 
 
 def test_threshold_grids_are_numpy_arange():

@@ -3,7 +3,8 @@
 Public surface: the pose errors ``re``, ``te``, ``add``, ``adi``, ``mssd``, ``mspd``, ``vsd``
 (the toolkit's arguments, mm, numpy in, float out); ``symmetry_transformations`` and
 ``symmetry_coverage``; ``evaluate_bop19`` (a BOP dataset + estimates -> scores with the toolkit's
-key names), ``evaluate_images`` / ``compute_errors`` / ``score_errors`` (in-memory pieces);
+key names), ``evaluate_images`` / ``compute_errors`` / ``score_errors`` (in-memory pieces; per-target shares of
+the AR and its standard error, ``paired_difference`` of two scorings on the same targets);
 ``VsdRenderer`` (depth for VSD in the toolkit's pixel convention); the threshold grids; the
 pose-error breakdown (``rotation_error_deg``, ``pose_errors``, ``breakdown_errors``,
 ``summarize_breakdown``, ``symmetry_rotations``, ``format_breakdown_line``: median rotation,
@@ -29,6 +30,7 @@ from sc6d_jax.metrics._bop19 import (
     compute_errors,
     evaluate_images,
     make_object_model,
+    paired_difference,
     score_errors,
 )
 from sc6d_jax.metrics._breakdown import (
@@ -90,6 +92,7 @@ __all__ = [
     "mspd",
     "mssd",
     "overlapping_sphere_projections",
+    "paired_difference",
     "pose_errors",
     "project_pts",
     "re",

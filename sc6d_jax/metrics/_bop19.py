@@ -221,6 +221,7 @@ class _Counts:
     tars: int = 0
     obj_tps: dict[int, int] = field(default_factory=dict)
     obj_tars: dict[int, int] = field(default_factory=dict)
+    matched: set[tuple[int, int, int]] = field(default_factory=set)  # (scene_id, im_id, gt index)
 
     def recall(self) -> float:
         return self.tps / float(self.tars) if self.tars else 0.0
@@ -243,7 +244,13 @@ def score_errors(
     Returns a dict with the toolkit's key names (``bop19_average_recall``, ``..._vsd``,
     ``..._mssd``, ``..._mspd``; ``..._vsd`` is None when VSD is not available), ``vsd_available``,
     ``recalls`` (per threshold; VSD as [tau][threshold]), ``per_object`` (AR per error type and
-    overall, per object id) and ``counts``.
+    overall, per object id), ``counts``, ``per_target`` (``[scene_id, im_id, gt index, obj_id,
+    share]`` per valid ground truth, in image order: the fraction of thresholds at which it was
+    matched, averaged over the error types; AR is their mean) and
+    ``average_recall_standard_error`` (their standard deviation over the square root of their
+    number: AR's sampling error over targets; None below two targets). Two sets of estimates
+    on the same targets compare best per target: the standard error of the mean difference of
+    their shares is usually well below either AR's.
     """
     by_im_obj: dict[tuple[int, int, int], list[EstimateErrors]] = {}
     for r in errors:
@@ -269,6 +276,7 @@ def score_errors(
                     continue
                 for gt_id in _match(recs, errors_of, th, valid):
                     c.tps += 1
+                    c.matched.add((img.scene_id, img.im_id, gt_id))
                     o = img.gts[gt_id].obj_id
                     c.obj_tps[o] = c.obj_tps.get(o, 0) + 1
         return c
@@ -305,6 +313,17 @@ def score_errors(
         d["targets"] = counts["mssd"][0].obj_tars.get(o, 0)
         per_object[o] = d
 
+    # Each valid ground truth's share of the AR: the fraction of thresholds it is matched at,
+    # per error type, averaged over the types. AR is exactly their mean (recall = matched /
+    # valid at each threshold), so their spread gives AR's standard error over targets.
+    keys = [(img.scene_id, img.im_id, i, g.obj_id) for img, valid, _ in prepared
+            for i, g in enumerate(img.gts) if valid[i]]
+    share = np.zeros(len(keys))
+    for k in used:
+        for c in counts[k]:
+            share += np.array([key[:3] in c.matched for key in keys], np.float64) / (len(counts[k]) * len(used))
+    se = float(np.std(share, ddof=1) / math.sqrt(len(share))) if len(share) > 1 else None
+
     out: dict[str, Any] = {
         "bop19_average_recall": total,
         "bop19_average_recall_vsd": ar.get("vsd"),
@@ -317,6 +336,8 @@ def score_errors(
             "vsd": [[c.recall() for c in row] for row in vsd_counts] if vsd_available else None,
         },
         "per_object": per_object,
+        "average_recall_standard_error": se,
+        "per_target": [[sc, im, gt, o, float(a)] for (sc, im, gt, o), a in zip(keys, share)],
         "counts": {"targets": n_valid, "estimates_evaluated": len(errors), "images": len(images)},
     }
     if not vsd_available:
@@ -385,3 +406,24 @@ def make_object_model(obj_id: int, model_info: Any, pts: np.ndarray, max_sym_dis
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
         raise ValueError(f"object {obj_id}: points must have shape (N, 3), got {pts.shape}")
     return ObjectModel(int(obj_id), diameter, pts, symmetry_transformations(info, max_sym_disc_step))
+
+
+def paired_difference(a: Mapping[str, Any], b: Mapping[str, Any], obj_ids: Iterable[int] | None = None
+                      ) -> tuple[float, float | None, int]:
+    """AR of ``b`` minus AR of ``a`` over the targets both scored (``score_errors``' ``per_target``;
+    only objects in ``obj_ids`` when given), with the standard error of that mean difference
+    (None below two targets) and the number of targets. Per target the two shares move together
+    (an easy target is easy for both), so the difference is much surer than either AR alone."""
+    keep = None if obj_ids is None else {int(o) for o in obj_ids}
+
+    def shares(s: Mapping[str, Any]) -> dict[tuple[int, int, int], float]:
+        return {(int(r[0]), int(r[1]), int(r[2])): float(r[4]) for r in s.get("per_target") or []
+                if keep is None or int(r[3]) in keep}
+
+    sa, sb = shares(a), shares(b)
+    common = sorted(sa.keys() & sb.keys())
+    if not common:
+        raise ValueError("the two scores share no targets (scores without per_target, or other test sets)")
+    d = np.array([sb[k] - sa[k] for k in common])
+    se = float(np.std(d, ddof=1) / math.sqrt(len(d))) if len(d) > 1 else None
+    return float(d.mean()), se, len(d)

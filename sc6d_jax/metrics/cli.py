@@ -52,6 +52,10 @@ def format_table(scores: dict[str, Any]) -> str:
         f"{_fmt(scores['bop19_average_recall_vsd']):>6}  {_fmt(scores['bop19_average_recall_mssd']):>7}  "
         f"{_fmt(scores['bop19_average_recall_mspd']):>7}"
     )
+    se = scores.get("average_recall_standard_error")
+    if se is not None:
+        lines.append(f"AR standard error over the {scores['counts']['targets']} targets: {se:.4f} (compare two "
+                     f"estimators on the same targets per target: sc6d_jax.metrics.paired_difference)")
     if not scores["vsd_available"]:
         lines.append(f"VSD skipped ({scores.get('vsd_skipped_reason', 'unavailable')}): AR = mean of AR_MSSD and AR_MSPD")
     t = scores.get("bop19_average_time_per_image", -1.0)

@@ -12,7 +12,8 @@ offset and depth), and the errors against the ground truth are summarised:
 - ``val_depth_rel_median``: median |t_z - t_z*| / t_z*; ``val_centre_median_px``;
 - ``val_rot_under_{5,10,20}``, ``val_depth_under_{2,5}pct``;
 - ``val_ar``: mean of AR_MSSD and AR_MSPD over the crops (the BOP19 thresholds; no VSD: a crop
-  has no depth image), a proxy of the BOP AR that moves with it.
+  has no depth image), a proxy of the BOP AR that moves with it; ``val_ar_se``: its standard
+  error over the crops (each crop's share of it: the fraction of thresholds it passes).
 
 The grid has ``lib_size`` rotations (so3_grid), coarser than the estimator's 480,000: its
 covering radius bounds the rotation error from below (about 3 degrees at 60,000 rotations).
@@ -157,8 +158,10 @@ class Validator:
             hit_mspd.append(np.array([e2 < th for th in MSPD_THRESHOLDS], float))
         s = summarize_breakdown(rows)["overall"]
         ar_mssd, ar_mspd = float(np.mean(hit_mssd)), float(np.mean(hit_mspd))
+        share = 0.5 * (np.mean(hit_mssd, axis=1) + np.mean(hit_mspd, axis=1))  # each crop's part of val_ar
         out = {
             "val_ar": 0.5 * (ar_mssd + ar_mspd),
+            "val_ar_se": float(np.std(share, ddof=1) / math.sqrt(self.n)) if self.n > 1 else float("nan"),
             "val_ar_mssd": ar_mssd,
             "val_ar_mspd": ar_mspd,
         }
