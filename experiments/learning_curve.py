@@ -53,9 +53,9 @@ sys.path.insert(0, str(ROOT))
 
 from sc6d_jax.train.loop import RAW_LOGGED as RAW  # noqa: E402  (validation of a moving average's raw parameters)
 
-COLUMNS = ("config", "step", "train_min", "crops_per_object", "val_ar", "val_ar_se", "val_rot_median_deg",
-           "val_depth_rel_median", "val_centre_median_px", "val_rot_under_10", "val_rot_over_90",
-           "val_depth_under_2pct", *RAW)
+COLUMNS = ("config", "step", "train_min", "crops_per_object", "val_ar", "val_ar_se", "val_ar_diff_vs_first",
+           "val_ar_diff_se", "val_rot_median_deg", "val_depth_rel_median", "val_centre_median_px",
+           "val_rot_under_10", "val_rot_over_90", "val_depth_under_2pct", *RAW)
 
 
 def parse_config(text: str) -> tuple[str, list[str]]:
@@ -75,11 +75,15 @@ def parse_config(text: str) -> tuple[str, list[str]]:
     return name, out
 
 
-def curve_rows(name: str, run_dir: Path) -> list[dict]:
-    """The validation records of one run as CSV rows."""
+def curve_rows(name: str, run_dir: Path, base_dir: Path | None = None) -> list[dict]:
+    """The validation records of one run as CSV rows; with ``base_dir`` (the first configuration's
+    run), also the paired difference of val_ar from it at each step both validated on the same
+    crops (``val_ar_diff_vs_first`` +- ``val_ar_diff_se``, from ``val_shares.jsonl``)."""
     cfg = json.loads((run_dir / "config.json").read_text())
     n_obj = len(cfg["stream"]["obj_ids"])
     bs = cfg["stream"]["batch_size"]
+    mine = val_shares(run_dir)
+    base = val_shares(base_dir) if base_dir is not None and base_dir != run_dir else {}
     rows = []
     for line in (run_dir / "metrics.jsonl").read_text().splitlines():
         rec = json.loads(line)
@@ -90,7 +94,28 @@ def curve_rows(name: str, run_dir: Path) -> list[dict]:
             "crops_per_object": rec["step"] * bs / n_obj,
             **{k: rec.get(k) for k in COLUMNS if k.startswith("val_")},
         })
+        a, b = base.get(rec["step"]), mine.get(rec["step"])
+        if a is not None and b is not None and a[0] == b[0] and len(a[1]) == len(b[1]) > 1:
+            d = b[1] - a[1]
+            rows[-1]["val_ar_diff_vs_first"] = float(d.mean())
+            rows[-1]["val_ar_diff_se"] = statistics.stdev(d.tolist()) / math.sqrt(len(d))
     return rows
+
+
+def val_shares(run_dir: Path) -> dict[int, tuple[str | None, "np.ndarray"]]:
+    """step -> (crops fingerprint, each validation crop's share of val_ar) of a run (the last
+    record of a step wins: a resumed run validates its step again); {} for runs before the file."""
+    import numpy as np
+
+    from sc6d_jax.train.loop import VAL_SHARES
+
+    path = run_dir / VAL_SHARES
+    out = {}
+    if path.is_file():
+        for line in path.read_text().splitlines():
+            rec = json.loads(line)
+            out[int(rec["step"])] = (rec.get("crops"), np.asarray(rec["shares"], np.float64))
+    return out
 
 
 def amendment_marks(name: str, run_dir: Path, rows: list[dict]) -> list[tuple[float, str]]:
@@ -208,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
         if rc != 0:
             print(f"learning_curve: error: run {name} failed (exit {rc})", file=sys.stderr)
             return rc
-        all_rows += curve_rows(name, run)
+        all_rows += curve_rows(name, run, out / configs[0][0])
         _write_csv(out / f"{args.name}.csv", all_rows, COLUMNS)
         plot(all_rows, out / f"{args.name}.png")
     if args.test_dataset:
@@ -217,8 +242,10 @@ def main(argv: list[str] | None = None) -> int:
         _test(args, out, models, [n for n, _ in configs])
     for name, _ in configs:
         last = [r for r in all_rows if r["config"] == name][-1]
-        print(f"{name:>16}: {last['train_min']:.1f} min, val AR {last['val_ar']:.3f}, rotation "
-              f"{last['val_rot_median_deg']:.1f} deg, depth {100 * last['val_depth_rel_median']:.2f} %")
+        d = last.get("val_ar_diff_vs_first")
+        vs = "" if d is None else f" ({d:+.3f} +- {last['val_ar_diff_se']:.3f} vs {configs[0][0]}, same crops)"
+        print(f"{name:>16}: {last['train_min']:.1f} min, val AR {last['val_ar']:.3f}{_pm(last.get('val_ar_se'))}{vs}, "
+              f"rotation {last['val_rot_median_deg']:.1f} deg, depth {100 * last['val_depth_rel_median']:.2f} %")
     print(f"learning_curve: wrote {out / (args.name + '.csv')} and {out / (args.name + '.png')}")
     return 0
 
@@ -265,7 +292,7 @@ def _from_runs(args) -> int:
                   file=sys.stderr)
             return 2
         runs.append((name, run))
-    rows = [r for name, run in runs for r in curve_rows(name, run)] + [r for _, got in csv_parts for r in got]
+    rows = [r for name, run in runs for r in curve_rows(name, run, runs[0][1])] + [r for _, got in csv_parts for r in got]
     if not rows:
         print("learning_curve: error: no validation records in those runs", file=sys.stderr)
         return 2

@@ -136,6 +136,14 @@ def test_learning_curve_harness_writes_csv_and_plot(tmp_path, models):
     assert [(x["config"], x["step"]) for x in rows] == [("a", "10"), ("a", "20"), ("b", "10"), ("b", "20")]
     assert float(rows[1]["crops_per_object"]) == 20 * 16
     assert all(0.0 <= float(x["val_rot_over_90"]) <= 1.0 for x in rows)  # the share turned the wrong way round
+    # b validates on a's crops (same seed and scenes): its val_ar minus a's, per crop, at each step
+    shares = {n: [json.loads(x) for x in (out / n / "val_shares.jsonl").read_text().splitlines()] for n in "ab"}
+    assert [x["step"] for x in shares["b"]] == [10, 20] and shares["a"][0]["crops"] == shares["b"][0]["crops"]
+    assert np.mean(shares["a"][1]["shares"]) == pytest.approx(float(rows[1]["val_ar"]), abs=1e-3)
+    diff = np.subtract(shares["b"][1]["shares"], shares["a"][1]["shares"])
+    assert float(rows[3]["val_ar_diff_vs_first"]) == pytest.approx(diff.mean(), abs=1e-9)
+    assert float(rows[3]["val_ar_diff_se"]) == pytest.approx(np.std(diff, ddof=1) / 4, abs=1e-9)
+    assert rows[1]["val_ar_diff_vs_first"] == "" and float(rows[1]["val_ar_se"]) >= 0.0
     # checkpoints every 10 steps, logs every 20 (tiny): a validated step is logged all the same
     recs = [json.loads(x) for x in (out / "a" / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in recs] == [10, 20] and all("loss" in r and "val_ar" in r for r in recs)

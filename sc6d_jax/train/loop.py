@@ -611,12 +611,15 @@ def _loop(run: _Run, state: TrainState, start: int, last_ckpt: Path | None) -> A
                     # the step's record gets the validation fields (one line per logged step)
                     tv = time.perf_counter()
                     vrec = held.pop()
+                    vrec.update(validator(ema[0] if ema is not None else params))
+                    shares = getattr(validator, "last_shares", None)
+                    if shares is not None:  # each crop's part of val_ar: paired A/Bs on the same crops
+                        with open(run_dir / VAL_SHARES, "a", encoding="utf-8") as f:
+                            f.write(json.dumps({"step": done, "crops": getattr(validator, "fingerprint", None),
+                                            "shares": [round(float(x), 4) for x in shares]}) + "\n")
                     if ema is not None:  # what inference will use, and the raw parameters beside it
-                        vrec.update(validator(ema[0]))
                         raw = validator(params)
                         vrec.update({name: raw[k] for name, k in zip(RAW_LOGGED, RAW_KEYS)})
-                    else:
-                        vrec.update(validator(params))
                     val_s += time.perf_counter() - tv
                     vrec["val_s"] = time.perf_counter() - tv
                     write(vrec)
@@ -630,6 +633,11 @@ def _loop(run: _Run, state: TrainState, start: int, last_ckpt: Path | None) -> A
             mfile.close()
     return _host_tree(ema[0] if ema is not None else params)
 
+
+#: Per validation, each crop's share of ``val_ar`` (``{"step", "crops", "shares"}`` per line, ``crops``
+#: the validator's fingerprint; the last line of a step counts after a resume): runs that validate
+#: on the same crops compare per crop (``experiments/learning_curve.py``).
+VAL_SHARES = "val_shares.jsonl"
 
 #: The validation fields also logged for the raw parameters of a run that keeps a moving average,
 #: under ``val_raw_*`` (:data:`RAW_LOGGED`).

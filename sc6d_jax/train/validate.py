@@ -21,6 +21,7 @@ covering radius bounds the rotation error from below (about 3 degrees at 60,000 
 
 from __future__ import annotations
 
+import hashlib
 import math
 from pathlib import Path
 from typing import Any
@@ -72,6 +73,11 @@ class Validator:
             parts = [stream.batch(b) for b in range(n_batches)]
         keys = ("rgb", "pe", "R", "t", "K", "center", "side", "obj_idx", "obj_id")
         self.data = {k: np.concatenate([p[k] for p in parts])[: self.n] for k in keys}
+        #: which crops these are (a digest of their pixels and poses): paired comparisons of two
+        #: runs' per-crop scores (``last_shares``) only between runs that validate on the same crops
+        self.fingerprint = hashlib.sha1(b"".join(np.ascontiguousarray(self.data[k]).tobytes()
+                                                 for k in ("rgb", "R", "t"))).hexdigest()[:16]
+        self.last_shares: np.ndarray | None = None  # each crop's share of val_ar at the last call
         infos = load_models_info(models_dir)
         ids = sorted(set(int(i) for i in self.data["obj_id"]))
         self.sym_transforms = {i: symmetry_transformations(infos[i]) for i in ids}
@@ -159,6 +165,7 @@ class Validator:
         s = summarize_breakdown(rows)["overall"]
         ar_mssd, ar_mspd = float(np.mean(hit_mssd)), float(np.mean(hit_mspd))
         share = 0.5 * (np.mean(hit_mssd, axis=1) + np.mean(hit_mspd, axis=1))  # each crop's part of val_ar
+        self.last_shares = share
         out = {
             "val_ar": 0.5 * (ar_mssd + ar_mspd),
             "val_ar_se": float(np.std(share, ddof=1) / math.sqrt(self.n)) if self.n > 1 else float("nan"),
