@@ -1,4 +1,4 @@
-"""The crop stream's realism options (materials, resampling, sensor effects, background clutter)."""
+"""The crop stream's realism options (materials, resampling, sensor effects, background clutter, object gain)."""
 
 from __future__ import annotations
 
@@ -97,6 +97,33 @@ def test_distractors_stay_behind_the_target(models):
         StreamConfig(str(models), distractors=-1)
 
 
+def test_object_gain_scales_the_objects_and_keeps_the_background(models):
+    """Plain backgrounds, no occluders or augmentation: with object_gain the background pixels are
+    those of the stream without it, and each crop's object pixels are one factor brighter or darker
+    (within the range), the labels unchanged."""
+    kw = dict(crop_size=48, batch_size=12, workers=0, obj_ids=(1, 5, 8), seed=5, augment=False,
+              background="plain", occlusion=0.0)
+    with CropStream(StreamConfig(str(models), **kw)) as s:
+        base = s.batch(0)
+    with CropStream(StreamConfig(str(models), object_gain=(0.5, 2.0), **kw)) as s:
+        gained = s.batch(0)
+    for k in ("R", "t", "K", "delta_z", "obj_id", "mask_visib"):
+        np.testing.assert_array_equal(gained[k], base[k])
+    ratios = []
+    for a, b, m in zip(base["rgb"], gained["rgb"], base["mask_visib"]):
+        np.testing.assert_array_equal(b[m == 0], a[m == 0])  # the background is untouched
+        x, y = a[m > 0].astype(np.float64), b[m > 0].astype(np.float64)
+        ok = (x > 20) & (y < 250)  # neither dark (rounding) nor saturated
+        ratios.append(np.median(y[ok] / x[ok]))
+    ratios = np.array(ratios)
+    assert np.all((ratios > 0.47) & (ratios < 2.1))
+    assert ratios.min() < 0.85 and ratios.max() > 1.2  # a factor per crop, both ways
+    with pytest.raises(ValueError, match="object_gain"):
+        StreamConfig(str(models), object_gain=(2.0, 1.0))
+    with pytest.raises(ValueError, match="object_gain"):
+        apply_overrides(preset("tiny"), ["stream.object_gain=0,2"])
+
+
 def test_realism_options_reach_the_stream_from_the_config(models, tmp_path):
     """``--set stream.sensor=true`` etc. (and the box jitter) are passed to the crop stream; when
     off (unset), nothing is."""
@@ -113,12 +140,14 @@ def test_realism_options_reach_the_stream_from_the_config(models, tmp_path):
     fns = DataFns(spy, default.stream, default.z_range)
     cfg = apply_overrides(preset("tiny"), ["stream.sensor=true", "stream.distractors=2", "stream.materials=true",
                                            "stream.resample=true", "stream.box_shift=0", "stream.box_scale=0.9,1.1",
-                                           "stream.box_source=visible", "steps=2", "val_crops=0"])
+                                           "stream.box_source=visible", "stream.object_gain=0.5,2", "steps=2",
+                                           "val_crops=0"])
     with pytest.raises(Stop):
         train(cfg, models, tmp_path / "a", workers=0, progress=False, verbose=False, data_fns=fns)
-    keys = ("sensor", "distractors", "materials", "resample", "box_shift", "box_scale", "box_source")
+    keys = ("sensor", "distractors", "materials", "resample", "box_shift", "box_scale", "box_source", "object_gain")
     assert {k: seen[-1].get(k) for k in keys} == {"sensor": True, "distractors": 2, "materials": True, "resample": True,
-                                                  "box_shift": 0.0, "box_scale": (0.9, 1.1), "box_source": "visible"}
+                                                  "box_shift": 0.0, "box_scale": (0.9, 1.1), "box_source": "visible",
+                                                  "object_gain": (0.5, 2.0)}
     with pytest.raises(Stop):
         train(apply_overrides(preset("tiny", steps=2, val_crops=0), ["stream.box_shift=none", "stream.box_scale=none"]),
               models, tmp_path / "b", workers=0, progress=False, verbose=False, data_fns=fns)

@@ -92,7 +92,12 @@ class StreamConfig:
         distractors: up to this many other objects placed behind the target (they never cover
             it), in a crop with probability equal to the curriculum's difficulty: object clutter
             in the background, as in real scenes, next to the procedural patterns.
-        These four default to off (the streams of earlier runs are unchanged); they are the
+        object_gain: (low, high): every drawn object's and occluder's pixels multiplied by one
+            factor per crop, log-uniform in [low, high], before the camera effects and the colour
+            augmentation; the background keeps its brightness. A model's colours are known only
+            up to the exposure of its scan and of the test camera; without it the rendered objects
+            sit at one brightness relative to their surroundings. None = off.
+        These five default to off (the streams of earlier runs are unchanged); they are the
         stream's realism options for real test images (LM-O).
         max_faces: render meshes with more faces than this simplified to about this many
             (``sc6d_jax.render.simplify_mesh``; 0 = the full meshes). 5,000 faces render the
@@ -121,8 +126,14 @@ class StreamConfig:
     sensor: bool = False
     distractors: int = 0
     max_faces: int = 0
+    object_gain: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
+        if self.object_gain is not None:
+            g = tuple(float(x) for x in self.object_gain)
+            if len(g) != 2 or not 0.0 < g[0] <= g[1]:
+                raise ValueError(f"object_gain must be (low, high) with 0 < low <= high, got {self.object_gain!r}")
+            object.__setattr__(self, "object_gain", g)
         if self.background not in ("textured", "plain"):
             raise ValueError(f"background must be 'textured' or 'plain', got {self.background!r}")
         if self.box_source not in ("amodal", "visible"):
@@ -390,6 +401,12 @@ class _Worker:
         if n_vis < MIN_VISIBLE_PX or n_vis < MIN_VISIBLE_FRACTION * S * S:
             return None
         rgb = out.rgb
+        if cfg.object_gain is not None:  # the objects' exposure relative to their surroundings
+            lo, hi = cfg.object_gain
+            gain = float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+            fg = out.instance >= 0
+            rgb = rgb.copy()
+            rgb[fg] = np.clip(rgb[fg].astype(np.float32) * gain + 0.5, 0, 255).astype(np.uint8)
         if cfg.resample or cfg.sensor:
             rgb = camera_effects(rng, rgb, side, resample=cfg.resample, sensor=cfg.sensor)
         return rgb, mask, out.depth, center, side, T

@@ -63,8 +63,8 @@ class StreamSettings:
             full setting (``sc6d_jax.data.StreamConfig.curriculum``; 0 = full from the start).
         curriculum_fraction: the same as a fraction of the run's steps (the larger of the two
             applies), so that ``--steps N`` keeps the schedule's shape at any N.
-        materials, resample, sensor, distractors: the stream's realism options for real test
-            images (``sc6d_jax.data.StreamConfig``; off by default). The validation crops never
+        materials, resample, sensor, distractors, object_gain: the stream's realism options for
+            real test images (``sc6d_jax.data.StreamConfig``; off by default). The validation crops never
             use them, so runs with and without them are scored on the same crops.
         max_faces: render meshes simplified to about this many faces (0 = the full meshes;
             ``sc6d_jax.data.StreamConfig``); the validation crops use the full meshes.
@@ -94,6 +94,7 @@ class StreamSettings:
     box_shift: float | None = None
     box_scale: tuple[float, float] | None = None
     box_source: str | None = None
+    object_gain: tuple[float, float] | None = None
 
     #: fields whose ``None`` leaves the crop stream's own default in place
     STREAM_DEFAULTED = ("occlusion", "distance", "box_shift", "box_scale", "box_source")
@@ -109,6 +110,11 @@ class StreamSettings:
             raise ValueError(f"stream.box_source must be 'amodal', 'visible' or None, got {self.box_source!r}")
         if self.box_shift is not None and not 0.0 <= self.box_shift < 1.0:
             raise ValueError(f"stream.box_shift must be in [0, 1) or None, got {self.box_shift!r}")
+        if self.object_gain is not None:
+            g = tuple(float(x) for x in self.object_gain)
+            if len(g) != 2 or not 0.0 < g[0] <= g[1]:
+                raise ValueError(f"stream.object_gain must be (low, high) with 0 < low <= high, got {self.object_gain!r}")
+            object.__setattr__(self, "object_gain", g)
         if self.box_scale is not None:
             b = tuple(float(x) for x in self.box_scale)
             if len(b) != 2 or not 0.0 < b[0] <= b[1]:
