@@ -1,4 +1,4 @@
-"""The crop stream's realism options (materials, resampling, sensor effects, background clutter, object gain)."""
+"""The crop stream's realism options (materials, resampling, sensor effects, background clutter, object gain, rendered clutter scenes)."""
 
 from __future__ import annotations
 
@@ -124,6 +124,50 @@ def test_object_gain_scales_the_objects_and_keeps_the_background(models):
         apply_overrides(preset("tiny"), ["stream.object_gain=0,2"])
 
 
+def test_scene_backgrounds_are_windows_of_rendered_clutter(models):
+    """scene_backgrounds=1: every crop's background is an S x S window (maybe mirrored) of one of
+    the worker's rendered clutter scenes, which are a pure function of the seed and show the
+    models (many colours and shades, not a procedural pattern); labels and masks are unchanged."""
+    from sc6d_jax.data import _stream
+    from sc6d_jax.data._clutter import clutter_scenes
+
+    S = 48
+    kw = dict(crop_size=S, batch_size=8, workers=0, obj_ids=(1, 5, 8), seed=5, augment=False, occlusion=0.0)
+    with CropStream(StreamConfig(str(models), **kw)) as s:
+        base = s.batch(0)
+    with CropStream(StreamConfig(str(models), scene_backgrounds=1.0, **kw)) as s:
+        got = s.batch(0)
+        bank = s._local.scenes  # the in-process worker (workers=0)
+    assert bank.shape == (_stream.SCENE_BANK, 2 * S, 2 * S, 3)
+    for k in ("R", "t", "K", "delta_z", "obj_id", "mask_visib"):
+        np.testing.assert_array_equal(got[k], base[k])
+    def window_of_bank(rgb: np.ndarray, bg: np.ndarray) -> bool:
+        r0, c0 = (int(v[0]) for v in np.nonzero(bg))  # one background pixel anchors the search
+        for scene in bank:
+            for img in (scene, scene[:, ::-1]):
+                for y, x in zip(*np.nonzero(np.all(img == rgb[r0, c0], axis=-1))):
+                    y, x = y - r0, x - c0
+                    if 0 <= y <= S and 0 <= x <= S and np.array_equal(img[y:y + S, x:x + S][bg], rgb[bg]):
+                        return True
+        return False
+
+    assert all(window_of_bank(rgb, m == 0) for rgb, m in zip(got["rgb"], got["mask_visib"]))
+    assert not window_of_bank(base["rgb"][0], base["mask_visib"][0] == 0)  # a procedural one is not
+    from sc6d_jax.bop import load_models_info, model_path
+    from sc6d_jax.render import load_mesh
+
+    info = load_models_info(models)
+    meshes = {i: load_mesh(model_path(models, i)) for i in (1, 5, 8)}
+    a = clutter_scenes(meshes, {i: info[i].diameter for i in meshes}, 3, 64, np.random.default_rng(1))
+    b = clutter_scenes(meshes, {i: info[i].diameter for i in meshes}, 3, 64, np.random.default_rng(1))
+    np.testing.assert_array_equal(a, b)
+    assert all(len(np.unique(x.reshape(-1, 3), axis=0)) > 200 for x in a)  # shaded models, not flat fills
+    with pytest.raises(ValueError, match="scene_backgrounds"):
+        StreamConfig(str(models), scene_backgrounds=1.5)
+    with pytest.raises(ValueError, match="scene_backgrounds"):
+        apply_overrides(preset("tiny"), ["stream.scene_backgrounds=-0.1"])
+
+
 def test_realism_options_reach_the_stream_from_the_config(models, tmp_path):
     """``--set stream.sensor=true`` etc. (and the box jitter) are passed to the crop stream; when
     off (unset), nothing is."""
@@ -140,14 +184,15 @@ def test_realism_options_reach_the_stream_from_the_config(models, tmp_path):
     fns = DataFns(spy, default.stream, default.z_range)
     cfg = apply_overrides(preset("tiny"), ["stream.sensor=true", "stream.distractors=2", "stream.materials=true",
                                            "stream.resample=true", "stream.box_shift=0", "stream.box_scale=0.9,1.1",
-                                           "stream.box_source=visible", "stream.object_gain=0.5,2", "steps=2",
-                                           "val_crops=0"])
+                                           "stream.box_source=visible", "stream.object_gain=0.5,2",
+                                           "stream.scene_backgrounds=0.5", "steps=2", "val_crops=0"])
     with pytest.raises(Stop):
         train(cfg, models, tmp_path / "a", workers=0, progress=False, verbose=False, data_fns=fns)
-    keys = ("sensor", "distractors", "materials", "resample", "box_shift", "box_scale", "box_source", "object_gain")
+    keys = ("sensor", "distractors", "materials", "resample", "box_shift", "box_scale", "box_source", "object_gain",
+            "scene_backgrounds")
     assert {k: seen[-1].get(k) for k in keys} == {"sensor": True, "distractors": 2, "materials": True, "resample": True,
                                                   "box_shift": 0.0, "box_scale": (0.9, 1.1), "box_source": "visible",
-                                                  "object_gain": (0.5, 2.0)}
+                                                  "object_gain": (0.5, 2.0), "scene_backgrounds": 0.5}
     with pytest.raises(Stop):
         train(apply_overrides(preset("tiny", steps=2, val_crops=0), ["stream.box_shift=none", "stream.box_scale=none"]),
               models, tmp_path / "b", workers=0, progress=False, verbose=False, data_fns=fns)

@@ -36,6 +36,8 @@ MIN_VISIBLE_FRACTION = 0.05
 VISIBLE_BOX_MIN = 0.3
 #: Procedural backgrounds pre-drawn per worker.
 BACKGROUND_BANK = 256
+#: Rendered clutter scenes per worker (``StreamConfig.scene_backgrounds``).
+SCENE_BANK = 128
 #: Scheduling priority the worker processes lower themselves by (os.nice).
 WORKER_NICENESS = 10
 
@@ -97,7 +99,12 @@ class StreamConfig:
             augmentation; the background keeps its brightness. A model's colours are known only
             up to the exposure of its scan and of the test camera; without it the rendered objects
             sit at one brightness relative to their surroundings. None = off.
-        These five default to off (the streams of earlier runs are unchanged); they are the
+        scene_backgrounds: the probability that a crop's textured background is a window of a
+            rendered tabletop clutter scene (``sc6d_jax.data._clutter``: a table with the models
+            and primitive shapes on it, under random lights) instead of a procedural pattern;
+            a bank of SCENE_BANK scenes is rendered once per worker (at twice the crop size).
+            0 = off.
+        These six default to off (the streams of earlier runs are unchanged); they are the
         stream's realism options for real test images (LM-O).
         max_faces: render meshes with more faces than this simplified to about this many
             (``sc6d_jax.render.simplify_mesh``; 0 = the full meshes). 5,000 faces render the
@@ -127,8 +134,11 @@ class StreamConfig:
     distractors: int = 0
     max_faces: int = 0
     object_gain: tuple[float, float] | None = None
+    scene_backgrounds: float = 0.0
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.scene_backgrounds <= 1.0:
+            raise ValueError(f"scene_backgrounds must be a probability in [0, 1], got {self.scene_backgrounds!r}")
         if self.object_gain is not None:
             g = tuple(float(x) for x in self.object_gain)
             if len(g) != 2 or not 0.0 < g[0] <= g[1]:
@@ -275,6 +285,12 @@ class _Worker:
         # flips, a roll and a colour shift: 4x cheaper than drawing a new one per crop.
         bank_rng = np.random.default_rng([cfg.seed, 2**31 - 2])
         self.backgrounds = np.stack([random_background(bank_rng, S) for _ in range(BACKGROUND_BANK)])
+        self.scenes = None
+        if cfg.scene_backgrounds > 0:  # rendered tabletop clutter, windows of S x S cut per crop
+            from sc6d_jax.data._clutter import clutter_scenes
+
+            self.scenes = clutter_scenes(meshes, self.diameters, SCENE_BANK, 2 * S,
+                                         np.random.default_rng([cfg.seed, 2**31 - 3]))
 
     def difficulty(self, b: int) -> float:
         return 1.0 if self.cfg.curriculum == 0 else min(1.0, b / self.cfg.curriculum)
@@ -283,6 +299,14 @@ class _Worker:
         if self.cfg.background == "plain" or (difficulty < 1.0 and rng.random() >= difficulty):
             S = self.cfg.crop_size
             return np.broadcast_to(rng.integers(0, 256, 3).astype(np.uint8), (S, S, 3)).copy()
+        if self.scenes is not None and rng.random() < self.cfg.scene_backgrounds:
+            scene = self.scenes[rng.integers(len(self.scenes))]
+            S = self.cfg.crop_size
+            y0, x0 = (int(v) for v in rng.integers(0, scene.shape[0] - S + 1, 2))
+            bg = scene[y0:y0 + S, x0:x0 + S]
+            if rng.random() < 0.5:
+                bg = bg[:, ::-1]
+            return np.ascontiguousarray(bg)
         bg = self.backgrounds[rng.integers(len(self.backgrounds))]
         if rng.random() < 0.5:
             bg = bg[:, ::-1]

@@ -63,8 +63,8 @@ class StreamSettings:
             full setting (``sc6d_jax.data.StreamConfig.curriculum``; 0 = full from the start).
         curriculum_fraction: the same as a fraction of the run's steps (the larger of the two
             applies), so that ``--steps N`` keeps the schedule's shape at any N.
-        materials, resample, sensor, distractors, object_gain: the stream's realism options for
-            real test images (``sc6d_jax.data.StreamConfig``; off by default). The validation crops never
+        materials, resample, sensor, distractors, object_gain, scene_backgrounds: the stream's
+            realism options for real test images (``sc6d_jax.data.StreamConfig``; off by default). The validation crops never
             use them, so runs with and without them are scored on the same crops.
         max_faces: render meshes simplified to about this many faces (0 = the full meshes;
             ``sc6d_jax.data.StreamConfig``); the validation crops use the full meshes.
@@ -95,6 +95,7 @@ class StreamSettings:
     box_scale: tuple[float, float] | None = None
     box_source: str | None = None
     object_gain: tuple[float, float] | None = None
+    scene_backgrounds: float = 0.0
 
     #: fields whose ``None`` leaves the crop stream's own default in place
     STREAM_DEFAULTED = ("occlusion", "distance", "box_shift", "box_scale", "box_source")
@@ -110,6 +111,8 @@ class StreamSettings:
             raise ValueError(f"stream.box_source must be 'amodal', 'visible' or None, got {self.box_source!r}")
         if self.box_shift is not None and not 0.0 <= self.box_shift < 1.0:
             raise ValueError(f"stream.box_shift must be in [0, 1) or None, got {self.box_shift!r}")
+        if not 0.0 <= self.scene_backgrounds <= 1.0:
+            raise ValueError(f"stream.scene_backgrounds must be in [0, 1], got {self.scene_backgrounds!r}")
         if self.object_gain is not None:
             g = tuple(float(x) for x in self.object_gain)
             if len(g) != 2 or not 0.0 < g[0] <= g[1]:

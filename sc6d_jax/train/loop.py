@@ -321,7 +321,8 @@ def train(
         common["curriculum"] = cfg.curriculum_steps
     if getattr(cfg.loss, "w_dense", 0) > 0:
         common["dense"] = True
-    for name in ("materials", "resample", "sensor", "distractors", "max_faces", "object_gain"):  # stream options, when on
+    for name in ("materials", "resample", "sensor", "distractors", "max_faces", "object_gain",
+                 "scene_backgrounds"):  # stream options, when on
         if getattr(cfg.stream, name):
             common[name] = getattr(cfg.stream, name)
     scfg = data_fns.stream_config(batch_size=local_bs, seed=_process_seed(cfg.seed, pidx, pcount), **common)
