@@ -64,8 +64,9 @@ class StreamSettings:
         curriculum_fraction: the same as a fraction of the run's steps (the larger of the two
             applies), so that ``--steps N`` keeps the schedule's shape at any N.
         materials, resample, sensor, distractors, object_gain, scene_backgrounds: the stream's
-            realism options for real test images (``sc6d_jax.data.StreamConfig``; off by default). The validation crops never
-            use them, so runs with and without them are scored on the same crops.
+            realism options for real test images (``sc6d_jax.data.StreamConfig``; off by
+            default). The validation crops never use them, so runs with and without them are
+            scored on the same crops.
         max_faces: render meshes simplified to about this many faces (0 = the full meshes;
             ``sc6d_jax.data.StreamConfig``); the validation crops use the full meshes.
         distance: camera distance range in object diameters (``None`` = the stream's default,
