@@ -140,10 +140,7 @@ class StreamConfig:
         if not 0.0 <= self.scene_backgrounds <= 1.0:
             raise ValueError(f"scene_backgrounds must be a probability in [0, 1], got {self.scene_backgrounds!r}")
         if self.object_gain is not None:
-            g = tuple(float(x) for x in self.object_gain)
-            if len(g) != 2 or not 0.0 < g[0] <= g[1]:
-                raise ValueError(f"object_gain must be (low, high) with 0 < low <= high, got {self.object_gain!r}")
-            object.__setattr__(self, "object_gain", g)
+            object.__setattr__(self, "object_gain", positive_range(self.object_gain, "object_gain"))
         if self.background not in ("textured", "plain"):
             raise ValueError(f"background must be 'textured' or 'plain', got {self.background!r}")
         if self.box_source not in ("amodal", "visible"):
@@ -166,6 +163,17 @@ class StreamConfig:
             raise ValueError(f"distractors must be a non-negative integer, got {self.distractors!r}")
         if not isinstance(self.max_faces, int) or self.max_faces < 0 or 0 < self.max_faces < 4:
             raise ValueError(f"max_faces must be 0 (full meshes) or an integer >= 4, got {self.max_faces!r}")
+
+
+def positive_range(value, name: str) -> tuple[float, float]:
+    """``value`` as a ``(low, high)`` float pair with 0 < low <= high (ValueError naming ``name``)."""
+    try:
+        g = tuple(float(x) for x in value)
+    except (TypeError, ValueError):
+        g = ()
+    if len(g) != 2 or not 0.0 < g[0] <= g[1]:
+        raise ValueError(f"{name} must be (low, high) with 0 < low <= high, got {value!r}")
+    return g
 
 
 def derive_seed(seed: int, tag: int) -> int:

@@ -115,10 +115,9 @@ class StreamSettings:
         if not 0.0 <= self.scene_backgrounds <= 1.0:
             raise ValueError(f"stream.scene_backgrounds must be in [0, 1], got {self.scene_backgrounds!r}")
         if self.object_gain is not None:
-            g = tuple(float(x) for x in self.object_gain)
-            if len(g) != 2 or not 0.0 < g[0] <= g[1]:
-                raise ValueError(f"stream.object_gain must be (low, high) with 0 < low <= high, got {self.object_gain!r}")
-            object.__setattr__(self, "object_gain", g)
+            from sc6d_jax.data._stream import positive_range
+
+            object.__setattr__(self, "object_gain", positive_range(self.object_gain, "stream.object_gain"))
         if self.box_scale is not None:
             b = tuple(float(x) for x in self.box_scale)
             if len(b) != 2 or not 0.0 < b[0] <= b[1]:
