@@ -42,15 +42,14 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import math
 import os
-import statistics
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from sc6d_jax.metrics import standard_error  # noqa: E402
 from sc6d_jax.train.loop import RAW_LOGGED as RAW  # noqa: E402  (validation of a moving average's raw parameters)
 
 COLUMNS = ("config", "step", "train_min", "crops_per_object", "val_ar", "val_ar_se", "val_ar_diff_vs_first",
@@ -98,7 +97,7 @@ def curve_rows(name: str, run_dir: Path, base_dir: Path | None = None) -> list[d
         if a is not None and b is not None and a[0] == b[0] and len(a[1]) == len(b[1]) > 1:
             d = b[1] - a[1]
             rows[-1]["val_ar_diff_vs_first"] = float(d.mean())
-            rows[-1]["val_ar_diff_se"] = statistics.stdev(d.tolist()) / math.sqrt(len(d))
+            rows[-1]["val_ar_diff_se"] = standard_error(d)
     return rows
 
 
@@ -377,7 +376,7 @@ def _uncertainty(scores: dict, base: dict, obj_ids: list[int] | None = None) -> 
 
     keep = None if obj_ids is None else set(obj_ids)
     shares = [r[4] for r in scores.get("per_target") or [] if keep is None or r[3] in keep]
-    out = {"ar_se": statistics.stdev(shares) / math.sqrt(len(shares)) if len(shares) > 1 else None,
+    out = {"ar_se": standard_error(shares),
            "ar_diff_vs_first": None, "ar_diff_se": None}
     if base is not scores and scores.get("per_target") and base.get("per_target"):
         try:

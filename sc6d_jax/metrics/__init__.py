@@ -4,7 +4,7 @@ Public surface: the pose errors ``re``, ``te``, ``add``, ``adi``, ``mssd``, ``ms
 (the toolkit's arguments, mm, numpy in, float out); ``symmetry_transformations`` and
 ``symmetry_coverage``; ``evaluate_bop19`` (a BOP dataset + estimates -> scores with the toolkit's
 key names), ``evaluate_images`` / ``compute_errors`` / ``score_errors`` (in-memory pieces; per-target shares of
-the AR and its standard error, ``paired_difference`` of two scorings on the same targets);
+the AR and its standard error, ``paired_difference`` of two scorings on the same targets, ``standard_error``);
 ``VsdRenderer`` (depth for VSD in the toolkit's pixel convention); the threshold grids; the
 pose-error breakdown (``rotation_error_deg``, ``pose_errors``, ``breakdown_errors``,
 ``summarize_breakdown``, ``symmetry_rotations``, ``format_breakdown_line``: median rotation,
@@ -32,6 +32,7 @@ from sc6d_jax.metrics._bop19 import (
     make_object_model,
     paired_difference,
     score_errors,
+    standard_error,
 )
 from sc6d_jax.metrics._breakdown import (
     MISS,
@@ -98,6 +99,7 @@ __all__ = [
     "re",
     "rotation_error_deg",
     "score_errors",
+    "standard_error",
     "summarize_breakdown",
     "symmetry_coverage",
     "symmetry_rotations",

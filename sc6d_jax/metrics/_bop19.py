@@ -322,7 +322,7 @@ def score_errors(
     for k in used:
         for c in counts[k]:
             share += np.array([key[:3] in c.matched for key in keys], np.float64) / (len(counts[k]) * len(used))
-    se = float(np.std(share, ddof=1) / math.sqrt(len(share))) if len(share) > 1 else None
+    se = standard_error(share)
 
     out: dict[str, Any] = {
         "bop19_average_recall": total,
@@ -408,6 +408,13 @@ def make_object_model(obj_id: int, model_info: Any, pts: np.ndarray, max_sym_dis
     return ObjectModel(int(obj_id), diameter, pts, symmetry_transformations(info, max_sym_disc_step))
 
 
+def standard_error(values: Iterable[float]) -> float | None:
+    """The standard error of the mean of ``values`` (sample standard deviation over the square
+    root of their number); None below two values."""
+    v = np.asarray(list(values), np.float64)
+    return float(np.std(v, ddof=1) / math.sqrt(len(v))) if len(v) > 1 else None
+
+
 def paired_difference(a: Mapping[str, Any], b: Mapping[str, Any], obj_ids: Iterable[int] | None = None
                       ) -> tuple[float, float | None, int]:
     """AR of ``b`` minus AR of ``a`` over the targets both scored (``score_errors``' ``per_target``;
@@ -425,5 +432,4 @@ def paired_difference(a: Mapping[str, Any], b: Mapping[str, Any], obj_ids: Itera
     if not common:
         raise ValueError("the two scores share no targets (scores without per_target, or other test sets)")
     d = np.array([sb[k] - sa[k] for k in common])
-    se = float(np.std(d, ddof=1) / math.sqrt(len(d))) if len(d) > 1 else None
-    return float(d.mean()), se, len(d)
+    return float(d.mean()), standard_error(d), len(d)

@@ -141,7 +141,7 @@ class Validator:
 
     def score(self, pred: dict[str, np.ndarray]) -> dict[str, float]:
         """The breakdown of estimates ``pred`` (as :meth:`predict` returns them), as ``val_*`` floats."""
-        from sc6d_jax.metrics import MSPD_THRESHOLDS, MSSD_THRESHOLDS, mspd, mssd
+        from sc6d_jax.metrics import MSPD_THRESHOLDS, MSSD_THRESHOLDS, mspd, mssd, standard_error
         from sc6d_jax.metrics._breakdown import SUMMARY_KEYS, pose_errors, summarize_breakdown
 
         d = self.data
@@ -166,9 +166,10 @@ class Validator:
         ar_mssd, ar_mspd = float(np.mean(hit_mssd)), float(np.mean(hit_mspd))
         share = 0.5 * (np.mean(hit_mssd, axis=1) + np.mean(hit_mspd, axis=1))  # each crop's part of val_ar
         self.last_shares = share
+        se = standard_error(share)
         out = {
             "val_ar": 0.5 * (ar_mssd + ar_mspd),
-            "val_ar_se": float(np.std(share, ddof=1) / math.sqrt(self.n)) if self.n > 1 else float("nan"),
+            "val_ar_se": float("nan") if se is None else se,
             "val_ar_mssd": ar_mssd,
             "val_ar_mspd": ar_mspd,
         }
