@@ -14,8 +14,14 @@
 # missing there (.whl: mujoco, mujoco-core, glfw, pyopengl, trimesh for CPython 3.12) and the
 # GL loader packages (.gl). Called as
 #   run(command="bash experiments/device_run.sh", carry=[".whl", ".gl", "runs/objects"])
-# Locally (no install, tiny budget):  SKIP_INSTALL=1 PY=.venv/bin/python OUT=/tmp/o TRAIN_STEPS=40 \
-#   TRAIN_BATCH=8 WORKERS=1 BENCH=0 bash experiments/device_run.sh
+# Prepared once on the development machine (both folders git-ignored via .git/info/exclude):
+#   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+#     --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 -d .whl \
+#     mujoco==4.0.1 mujoco-core==4.0.1 glfw pyopengl trimesh==5.2.0
+#   (cd .gl && apt-get download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
+# Locally (no install, tiny budget; tests/test_device_run.py does this):
+#   SKIP_INSTALL=1 PY=.venv/bin/python OUT=/tmp/o TRAIN_STEPS=40 TRAIN_BATCH=8 WORKERS=1 BENCH=0 \
+#   bash experiments/device_run.sh        (MODELS=DIR, PRESET=NAME change the objects and preset)
 set -u
 OUT=${OUT:?set OUT}
 PY=${PY:-python3}
@@ -25,6 +31,8 @@ TRAIN_BATCH=${TRAIN_BATCH:-256}
 WORKERS=${WORKERS:-14}
 BENCH=${BENCH:-1}
 RUN=${RUN_DIR:-/tmp/gpu_run}
+MODELS=${MODELS:-runs/objects/models}
+PRESET=${PRESET:-cpu}
 export MUJOCO_GL=egl PYOPENGL_PLATFORM=egl PYTHONUNBUFFERED=1
 t0=$(date +%s)
 stamp() { echo "[$(( $(date +%s) - t0 )) s] $*"; }
@@ -42,12 +50,13 @@ else
 fi
 stamp "setup done"
 
-$PY - <<'EOF' 2>&1 | tee "$OUT/smoke.log"
+MODELS=$MODELS $PY - <<'EOF' 2>&1 | tee "$OUT/smoke.log"
+import os
 import jax, numpy as np, mujoco, trimesh
 print("jax", jax.__version__, jax.devices(), "mujoco", mujoco.__version__, "trimesh", trimesh.__version__)
 from sc6d_jax import data
 from sc6d_jax.train.loop import _default_data_fns
-cfg = _default_data_fns().stream_config(models_dir="runs/objects/models", crop_size=64, batch_size=4, seed=0,
+cfg = _default_data_fns().stream_config(models_dir=os.environ["MODELS"], crop_size=64, batch_size=4, seed=0,
                                         workers=0, obj_ids=None, augment=True)
 with data.CropStream(cfg, 0) as s:
     b = next(iter(s))
@@ -55,7 +64,7 @@ print("crop batch", {k: getattr(v, "shape", None) for k, v in b.items()} if isin
 EOF
 stamp "smoke done"
 
-timeout "$TRAIN_S" $PY -m sc6d_jax.cli train --models runs/objects/models --out "$RUN" --preset cpu \
+timeout "$TRAIN_S" $PY -m sc6d_jax.cli train --models "$MODELS" --out "$RUN" --preset "$PRESET" \
   --workers "$WORKERS" --batch-size "$TRAIN_BATCH" --steps "$TRAIN_STEPS" --checkpoint-every 1000 \
   --no-progress --quiet > "$OUT/train.log" 2>&1
 echo "train exit $?" | tee -a "$OUT/train.log"
@@ -76,7 +85,7 @@ EOF
 fi
 
 if [ "$BENCH" = 1 ]; then
-  timeout 170 $PY experiments/bench_train.py --models runs/objects/models --presets paper cpu --workers "$WORKERS" \
+  timeout 170 $PY experiments/bench_train.py --models "$MODELS" --presets paper cpu --workers "$WORKERS" \
     --rounds 1 --windows 5 --window 20 --paper-windows 5 --paper-window 10 --json "$OUT/bench_train.json" \
     > "$OUT/bench.log" 2>&1
   echo "bench exit $?"; tail -30 "$OUT/bench.log"
