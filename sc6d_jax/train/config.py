@@ -476,7 +476,7 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         #   (obj1_fast*): with one object the smaller sets cost per step what they save in time.
         # 80x80 crops at equal minutes (obj 1, 4,300 steps against 6,000, 14.5 vs 13.2 min): test AR
         # 0.610 vs 0.612 without TTA, 0.646 vs 0.664 fused (-0.019 +- 0.012), depth 2.2 vs 2.5 %:
-        # nothing at equal minutes (obj1_crop80*), though far ahead per step.
+        # nothing at equal minutes (obj1_crop80*).
         # 26,000 steps: about an hour on 2 cores with one renderer worker. The "long" preset is
         # the same recipe over 150,000 steps, run in legs (sc6d carry); the shipped builtin was
         # trained with the earlier 5,000 + 256 negatives (8.6 hours).
