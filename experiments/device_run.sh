@@ -4,8 +4,8 @@
 #   1. a smoke check: JAX sees the GPU, MuJoCo renders a training crop through EGL;
 #   2. the `cpu` recipe on the 14 built-in objects at batch 256 (8x the preset's), for at most
 #      TRAIN_S seconds, with the usual checkpoints and validation; the run comes back as
-#      $OUT/gpu_run.tar.gz (config, metrics, validation shares, newest checkpoint), so that
-#      `sc6d demo --run` can score it on the development machine;
+#      $OUT/gpu_run.tar.gz (its `sc6d carry` state: config, newest checkpoint, metrics,
+#      validation shares), so that `sc6d demo --run` can score it on the development machine;
 #   3. training steps/s of the `paper` and `cpu` presets (experiments/bench_train.py), with
 #      pre-rendered batches and with the stream, into $OUT/bench_train.json.
 #
@@ -71,9 +71,9 @@ echo "train exit $?" | tee -a "$OUT/train.log"
 stamp "training done"
 tail -5 "$OUT/train.log"
 if [ -d "$RUN/checkpoints" ]; then
-  newest=$(ls "$RUN/checkpoints" | sort | tail -1)
-  tar -czf "$OUT/gpu_run.tar.gz" -C "$(dirname "$RUN")" \
-    $(cd "$(dirname "$RUN")" && ls -d "$(basename "$RUN")"/*.json* "$(basename "$RUN")/checkpoints/$newest" 2>/dev/null)
+  state=$(mktemp -d)/$(basename "$RUN")
+  $PY -m sc6d_jax.cli carry --run "$RUN" --out "$state" \
+    && tar -czf "$OUT/gpu_run.tar.gz" -C "$(dirname "$state")" "$(basename "$state")"
   $PY - "$RUN" <<'EOF'
 import json, sys
 for line in open(sys.argv[1] + "/metrics.jsonl"):

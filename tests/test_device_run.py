@@ -36,4 +36,6 @@ def test_device_script_trains_and_packs_a_resumable_run(tmp_path):
     assert json.loads((back / "config.json").read_text())["steps"] == 12
     recs = [json.loads(x) for x in (back / "metrics.jsonl").read_text().splitlines()]
     assert recs[-1]["step"] == 12 and "val_ar" in recs[-1]
+    shares = [json.loads(x) for x in (back / "val_shares.jsonl").read_text().splitlines()]
+    assert shares[-1]["step"] == 12 and len(shares[-1]["shares"]) > 0  # paired comparisons travel too
     assert "'step': 12" in res.stdout  # the validation records printed for the reply's tail

@@ -15,6 +15,8 @@ and, for the curve to continue, the metrics.  ``STATE_DIR`` receives exactly tha
 - ``checkpoints/ckpt_XXXXXXXX/``: the newest checkpoint only (its SHA-256 is checked first);
 - ``metrics.jsonl``: the lines up to that checkpoint's step (later ones, from a leg killed
   between checkpoints, would be dropped by the resume anyway);
+- ``val_shares.jsonl``: each validation crop's share of ``val_ar`` up to that step, if the run
+  validates (paired comparisons on the same crops, ``experiments/learning_curve.py``);
 - ``amendments.json``: the run's changes of config in mid-run (``sc6d train --amend``), if any;
 - ``carry.json``: what was carried from where (informative; it also marks the folder as a carry).
 
@@ -137,7 +139,7 @@ def carry(run_dir: str | os.PathLike, out: str | os.PathLike) -> Carried:
     cfg_path = run_dir / "config.json"
     config = _read_json(cfg_path, "not a training run directory")
     cfg_bytes = cfg_path.read_bytes()
-    from sc6d_jax.train.loop import AMENDMENTS_FILE, read_amendments
+    from sc6d_jax.train.loop import AMENDMENTS_FILE, VAL_SHARES, read_amendments
 
     amendments = [a for a in read_amendments(run_dir) if a["step"] <= step]
     diff = config_differences(config, meta["config"])
@@ -146,6 +148,7 @@ def carry(run_dir: str | os.PathLike, out: str | os.PathLike) -> Carried:
                          f"differing: {'; '.join(diff)}")
     _check_out(out, run_dir, config, step)
     metrics = "".join(line + "\n" for line in read_metrics_upto(run_dir / "metrics.jsonl", step))
+    shares = "".join(line + "\n" for line in read_metrics_upto(run_dir / VAL_SHARES, step))
     # The state is meant to be committed and moved between machines: no absolute path of this
     # machine goes with it (the models folder is informative; the next leg names its own).
     models_dir = _portable(meta.get("models_dir"))
@@ -165,6 +168,8 @@ def carry(run_dir: str | os.PathLike, out: str | os.PathLike) -> Carried:
         _write(tmp / "checkpoints" / ckpt.name / "state.npz", state)
         _write(tmp / "checkpoints" / ckpt.name / "meta.json", meta_bytes)
         _write(tmp / "metrics.jsonl", metrics.encode("utf-8"))
+        if shares:
+            _write(tmp / VAL_SHARES, shares.encode("utf-8"))
         if amendments:
             _write(tmp / AMENDMENTS_FILE, (json.dumps(amendments, indent=2) + "\n").encode("utf-8"))
         _write(tmp / _MARKER, (json.dumps(info, indent=2) + "\n").encode("utf-8"))
