@@ -103,6 +103,12 @@ def test_pose_errors_depth_and_centre():
     assert pose_errors(R_GT @ rot("x", 30.0), T_GT, R_GT, T_GT, K)["rot_deg"] == pytest.approx(30.0, abs=1e-9)
     # an estimate behind the camera has no projected centre
     assert pose_errors(R_GT, [0.0, 0.0, -5.0], R_GT, T_GT, K)["centre_px"] == math.inf
+    # the signed depth error (too near is negative) and the angle of the ground truth's ray
+    e = pose_errors(R_GT, T_GT * np.array([1.0, 1.0, 0.97]), R_GT, T_GT, K)
+    assert e["depth_signed"] == pytest.approx(-0.03, abs=1e-12) and e["depth_rel"] == pytest.approx(0.03, abs=1e-12)
+    assert e["ray_deg"] == pytest.approx(math.degrees(math.atan(math.hypot(*T_GT[:2]) / T_GT[2])), abs=1e-9)
+    assert pose_errors(R_GT, [0, 0, 500.0], R_GT, [0, 0, 400.0], K)["ray_deg"] == 0.0
+    assert pose_errors(R_GT, T_GT, R_GT, [400.0, 0.0, 400.0], K)["ray_deg"] == pytest.approx(45.0)
     with pytest.raises(ValueError, match="t_gt_z > 0"):
         pose_errors(R_GT, T_GT, R_GT, [0.0, 0.0, 0.0], K)
     with pytest.raises(ValueError, match="t_est"):
@@ -202,6 +208,22 @@ def test_summarize_breakdown_medians_and_fractions():
     assert sv["overall"] == o and sv["per_object"] == s["per_object"]
     with pytest.raises(ValueError, match="visib_fract"):
         summarize_breakdown([{**per[0], "visib_fract": 1.5}])
+    assert o["depth_bias_median"] is None  # no signed errors given
+    # the signed depth error's median over the estimated targets (misses have none), and the
+    # groups by ray angle when every target has one
+    signed = [0.01, -0.03, 0.10, -0.02, None]
+    rays = [3.0, 12.0, 25.0, 19.9, 31.0]
+    sr = summarize_breakdown([{**d, "depth_signed": g, "ray_deg": r} for d, g, r in zip(per, signed, rays)])
+    assert sr["overall"]["depth_bias_median"] == pytest.approx(-0.005)
+    assert sr["per_object"][2]["depth_bias_median"] == pytest.approx(-0.02)
+    assert list(sr["per_ray_angle"]) == ["<10deg", "10-20deg", ">=20deg"]
+    assert [sr["per_ray_angle"][k]["n"] for k in sr["per_ray_angle"]] == [1, 2, 2]
+    far = sr["per_ray_angle"][">=20deg"]
+    assert far["missed"] == 1 and far["depth_bias_median"] == pytest.approx(0.10)
+    assert sr["per_ray_angle"]["10-20deg"]["depth_bias_median"] == pytest.approx(-0.025)
+    assert "per_ray_angle" not in summarize_breakdown([{**per[0], "ray_deg": 3.0}, per[1]])  # not every target
+    with pytest.raises(ValueError, match="ray_deg"):
+        summarize_breakdown([{**per[0], "ray_deg": -1.0}])
     with pytest.raises(ValueError, match=r"per_target\[0\] has no 'centre_px'"):
         summarize_breakdown([{"obj_id": 1, "rot_deg": 1.0, "depth_rel": 0.1}])
     with pytest.raises(ValueError, match="non-negative"):
@@ -257,9 +279,17 @@ def test_eval_cli_breakdown_on_a_rendered_dataset(models, tmp_path, capsys):
     # grouped by the targets' visible fractions (scene_gt_info), which account for every target
     pv = s["breakdown"]["per_visibility"]
     assert set(pv) <= {"<50%", "50-80%", "80-95%", ">=95%"} and sum(d["n"] for d in pv.values()) == n
+    # and by the angle of their rays; the depth bias is the +6 % of the first targets or 0
+    pr = s["breakdown"]["per_ray_angle"]
+    assert set(pr) <= {"<10deg", "10-20deg", ">=20deg"} and sum(d["n"] for d in pr.values()) == n
+    assert b["depth_bias_median"] == pytest.approx(0.0, abs=1e-6)
+    first = [d["depth_bias_median"] for d in s["breakdown"]["per_object"].values()]
+    assert all(v is None or v == pytest.approx(0.0, abs=1e-6) or v == pytest.approx(0.06, abs=1e-6) or
+               0.0 < v < 0.06 for v in first)
     printed = capsys.readouterr().out
-    assert "pose-error breakdown" in printed and "rot_med" in printed
+    assert "pose-error breakdown" in printed and "rot_med" in printed and "bias" in printed
     assert "by visible fraction of the target:" in printed
+    assert "by angle of the target's ray from the optical axis:" in printed
     # --oracle: one part of every pose from the ground truth; the other part's errors stay
     for part, rot_ok, depth_ok in (("rotation", n - 1, n - n_depth - 1), ("translation", n - n_rot - 1, n - 1)):
         o = tmp_path / f"oracle_{part}.json"

@@ -36,6 +36,7 @@ from sc6d_jax.metrics._bop19 import (
 )
 from sc6d_jax.metrics._breakdown import (
     MISS,
+    RAY_BINS,
     VISIBILITY_BINS,
     breakdown_errors,
     format_breakdown_line,
@@ -68,6 +69,7 @@ __all__ = [
     "MSPD_THRESHOLDS",
     "MSSD_THRESHOLDS",
     "ORACLE_PARTS",
+    "RAY_BINS",
     "VISIBILITY_BINS",
     "VISIB_GT_MIN",
     "VSD_DELTA",

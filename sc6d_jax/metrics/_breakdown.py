@@ -10,7 +10,9 @@ three errors of the paired estimate:
   so a pose rotated about a continuous axis scores at most half a discretisation step);
 - ``depth_rel``: relative depth error ``|t_est_z - t_gt_z| / t_gt_z`` (0.05 = 5 %);
 - ``centre_px``: distance in pixels between the projections of the object origin ``t`` under
-  ``K`` for the estimate and the ground truth.
+  ``K`` for the estimate and the ground truth;
+- next to them, ``depth_signed`` (``(t_est_z - t_gt_z) / t_gt_z``: positive = too far) and
+  ``ray_deg``, the angle between the ground truth's ray ``t_gt`` and the optical axis.
 
 Pairing (:func:`breakdown_errors`): per target object of an image, the ``inst_count``
 highest-scoring estimates (the ones BOP19 evaluates) are taken in order of decreasing score
@@ -20,8 +22,12 @@ estimate is a **miss**: ``rot_deg = 180``, ``depth_rel = inf``, ``centre_px = in
 count as failures in every fraction and push the medians up.
 
 :func:`summarize_breakdown` turns the per-target errors into medians and the fractions of targets
-*strictly* under 5 / 10 / 20 degrees and 2 % / 5 % relative depth error, overall, per object and
-per visible fraction of the target (:data:`VISIBILITY_BINS`: how the errors grow with occlusion).
+*strictly* under 5 / 10 / 20 degrees and 2 % / 5 % relative depth error, and the median signed
+depth error (``depth_bias_median``, over the estimated targets), overall, per object, per visible
+fraction of the target (:data:`VISIBILITY_BINS`: how the errors grow with occlusion) and per angle
+of the target's ray from the optical axis (:data:`RAY_BINS`: an off-axis object is seen stretched
+along its ray's direction, by up to ``1/cos`` of that angle, which a depth read off the crop's
+apparent size has to undo).
 Everything here works on in-memory arrays; ``evaluate_images`` / ``evaluate_bop19`` store the
 summary under the key ``"breakdown"`` of their scores.
 """
@@ -57,9 +63,15 @@ VISIBILITY_BINS: tuple[tuple[str, float, float], ...] = (
 )
 """(label, low, high) of the visible-fraction groups of :func:`summarize_breakdown` (low <= v < high)."""
 
+RAY_BINS: tuple[tuple[str, float, float], ...] = (
+    ("<10deg", 0.0, 10.0), ("10-20deg", 10.0, 20.0), (">=20deg", 20.0, math.inf),
+)
+"""(label, low, high) in degrees of the ray-angle groups of :func:`summarize_breakdown`."""
+
 SUMMARY_KEYS: tuple[str, ...] = (
     "n", "missed", "rot_median_deg", "depth_rel_median", "centre_median_px",
     "rot_under_5", "rot_under_10", "rot_under_20", "rot_over_90", "depth_under_2pct", "depth_under_5pct",
+    "depth_bias_median",
 )
 
 
@@ -119,8 +131,10 @@ def pose_errors(
         sym_rotations: (N, 3, 3) symmetry rotations of the object, or None (asymmetric).
 
     Returns:
-        ``{"rot_deg": degrees, "depth_rel": |t_est_z - t_gt_z| / t_gt_z, "centre_px": pixels}``;
-        ``centre_px`` is inf when the estimate's centre is not in front of the camera (t_z <= 0).
+        ``{"rot_deg": degrees, "depth_rel": |t_est_z - t_gt_z| / t_gt_z, "centre_px": pixels,
+        "depth_signed": (t_est_z - t_gt_z) / t_gt_z, "ray_deg": angle of t_gt from the optical
+        axis}``; ``centre_px`` is inf when the estimate's centre is not in front of the camera
+        (t_z <= 0).
     """
     t_e = _vec(t_est, "t_est")
     t_g = _vec(t_gt, "t_gt")
@@ -136,7 +150,14 @@ def pose_errors(
         centre = float(np.linalg.norm(uv_e[:2] / uv_e[2] - uv_g[:2] / uv_g[2]))
     else:
         centre = math.inf
-    return {"rot_deg": rot, "depth_rel": float(depth), "centre_px": centre}
+    return {"rot_deg": rot, "depth_rel": float(depth), "centre_px": centre,
+            "depth_signed": float((t_e[2] - t_g[2]) / t_g[2]), "ray_deg": ray_angle_deg(t_g)}
+
+
+def ray_angle_deg(t: Any) -> float:
+    """Angle in degrees between the ray to ``t`` (3,) and the optical axis (z)."""
+    t = np.asarray(t, dtype=np.float64).reshape(3)
+    return float(np.degrees(np.arctan2(np.hypot(t[0], t[1]), t[2])))
 
 
 def breakdown_errors(
@@ -195,14 +216,16 @@ def breakdown_errors(
         for gt_id, g in enumerate(img.gts):
             if not valid[gt_id]:
                 continue
-            rec = paired.get(gt_id, {"est_id": None, "score": None, "missed": True, **MISS})
+            rec = paired.get(gt_id, {"est_id": None, "score": None, "missed": True, **MISS,
+                                     "ray_deg": ray_angle_deg(g.t)})
             out.append({"scene_id": img.scene_id, "im_id": img.im_id, "obj_id": int(g.obj_id), "gt_id": gt_id, **rec,
                         "visib_fract": float(g.visib_fract)})
     return out
 
 
 # ----------------------------------------------------------------------------- summary
-def _summary(rot: np.ndarray, depth: np.ndarray, centre: np.ndarray, missed: int) -> dict[str, Any]:
+def _summary(rot: np.ndarray, depth: np.ndarray, centre: np.ndarray, missed: int,
+             signed: np.ndarray | None = None) -> dict[str, Any]:
     n = len(rot)
     if n == 0:
         return {k: (0 if k in ("n", "missed") else None) for k in SUMMARY_KEYS}
@@ -218,7 +241,17 @@ def _summary(rot: np.ndarray, depth: np.ndarray, centre: np.ndarray, missed: int
         "rot_over_90": float(np.mean(rot > 90.0)),  # turned the wrong way round (near-symmetric objects)
         "depth_under_2pct": float(np.mean(depth < 0.02)),
         "depth_under_5pct": float(np.mean(depth < 0.05)),
+        "depth_bias_median": _finite_median(signed),
     }
+
+
+def _finite_median(x: np.ndarray | None) -> float | None:
+    """Median of the finite entries (None without any): the signed depth error of the estimated
+    targets (a miss has none)."""
+    if x is None:
+        return None
+    x = x[np.isfinite(x)]
+    return float(np.median(x)) if len(x) else None
 
 
 def summarize_breakdown(per_target: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
@@ -227,18 +260,21 @@ def summarize_breakdown(per_target: Sequence[Mapping[str, Any]]) -> dict[str, An
     Args:
         per_target: dicts with ``obj_id``, ``rot_deg`` [degrees], ``depth_rel`` [fraction],
             ``centre_px`` [pixels] (e.g. from :func:`breakdown_errors`); an optional ``missed``
-            (bool) is counted. Misses should carry :data:`MISS` (180, inf, inf). When every
-            target has a ``visib_fract``, the summary is also grouped by it.
+            (bool) is counted, an optional ``depth_signed`` [fraction] makes the depth bias.
+            Misses should carry :data:`MISS` (180, inf, inf). When every target has a
+            ``visib_fract`` (a ``ray_deg``), the summary is also grouped by it.
 
     Returns:
-        ``{"overall": S, "per_object": {obj_id: S}, "per_visibility": {label: S}}`` (objects
-        sorted by id; the visible-fraction groups of :data:`VISIBILITY_BINS` that hold targets,
-        in their order; ``per_visibility`` only with ``visib_fract``), each ``S`` with
-        ``n`` (targets), ``missed``, ``rot_median_deg``, ``depth_rel_median`` (fraction, 0.05 =
-        5 %), ``centre_median_px`` (medians; inf when more than half are misses), and
-        ``rot_under_5`` / ``_10`` / ``_20`` (degrees), ``depth_under_2pct`` / ``_5pct`` (fractions of
-        targets with the error strictly below the threshold). With no targets, ``n`` is 0 and
-        the rest None.
+        ``{"overall": S, "per_object": {obj_id: S}, "per_visibility": {label: S},
+        "per_ray_angle": {label: S}}`` (objects sorted by id; the groups of :data:`VISIBILITY_BINS`
+        and :data:`RAY_BINS` that hold targets, in their order; ``per_visibility`` only when every
+        target has a ``visib_fract``, ``per_ray_angle`` only when every target has a ``ray_deg``),
+        each ``S`` with ``n`` (targets), ``missed``, ``rot_median_deg``, ``depth_rel_median``
+        (fraction, 0.05 = 5 %), ``centre_median_px`` (medians; inf when more than half are
+        misses), ``rot_under_5`` / ``_10`` / ``_20`` (degrees), ``depth_under_2pct`` / ``_5pct``
+        (fractions of targets with the error strictly below the threshold) and
+        ``depth_bias_median`` (median ``depth_signed`` of the targets that have one; None without).
+        With no targets, ``n`` is 0 and the rest None.
     """
     if isinstance(per_target, Mapping):
         raise ValueError("per_target must be a list of dicts (one per target), got a single mapping")
@@ -246,6 +282,8 @@ def summarize_breakdown(per_target: Sequence[Mapping[str, Any]]) -> dict[str, An
     cols: list[list[float]] = [[], [], []]
     missed: list[bool] = []
     vis: list[float] = []
+    signed: list[float] = []
+    ray: list[float] = []
     for i, d in enumerate(per_target):
         if not isinstance(d, Mapping):
             raise ValueError(f"per_target[{i}] must be a dict, got {type(d).__name__}")
@@ -264,20 +302,29 @@ def summarize_breakdown(per_target: Sequence[Mapping[str, Any]]) -> dict[str, An
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"per_target[{i}]['visib_fract'] must be in [0, 1], got {d['visib_fract']!r}")
             vis.append(v)
+        sd = d.get("depth_signed")
+        signed.append(math.nan if sd is None else float(sd))
+        if d.get("ray_deg") is not None:
+            v = float(d["ray_deg"])
+            if not 0.0 <= v <= 180.0:
+                raise ValueError(f"per_target[{i}]['ray_deg'] must be in [0, 180], got {d['ray_deg']!r}")
+            ray.append(v)
     o = np.asarray(obj, dtype=np.int64)
+    sg = np.asarray(signed, dtype=np.float64)
     rot, depth, centre = (np.asarray(c, dtype=np.float64) for c in cols)
     m = np.asarray(missed, dtype=bool)
     per_object = {}
     for oid in sorted(set(obj)):
         sel = o == oid
-        per_object[oid] = _summary(rot[sel], depth[sel], centre[sel], int(m[sel].sum()))
-    out = {"overall": _summary(rot, depth, centre, int(m.sum())), "per_object": per_object}
-    if vis and len(vis) == len(obj):
-        v = np.asarray(vis)
-        out["per_visibility"] = {
-            label: _summary(rot[sel], depth[sel], centre[sel], int(m[sel].sum()))
-            for label, lo, hi in VISIBILITY_BINS if (sel := (v >= lo) & (v < hi)).any()
-        }
+        per_object[oid] = _summary(rot[sel], depth[sel], centre[sel], int(m[sel].sum()), sg[sel])
+    out = {"overall": _summary(rot, depth, centre, int(m.sum()), sg), "per_object": per_object}
+    for key, vals, bins in (("per_visibility", vis, VISIBILITY_BINS), ("per_ray_angle", ray, RAY_BINS)):
+        if vals and len(vals) == len(obj):
+            v = np.asarray(vals)
+            out[key] = {
+                label: _summary(rot[sel], depth[sel], centre[sel], int(m[sel].sum()), sg[sel])
+                for label, lo, hi in bins if (sel := (v >= lo) & (v < hi)).any()
+            }
     return out
 
 

@@ -71,6 +71,10 @@ def _bd_num(v: Any, scale: float = 1.0) -> str:
     return "inf" if v is None or not math.isfinite(float(v)) else f"{float(v) * scale:.1f}"
 
 
+def _bd_signed(v: Any) -> str:
+    return "-" if v is None or not math.isfinite(float(v)) else f"{100.0 * float(v):+.1f} %"
+
+
 def _bd_pct(v: Any) -> str:
     return "-" if v is None else f"{100.0 * float(v):.0f}"
 
@@ -80,10 +84,12 @@ def format_breakdown_table(breakdown: dict[str, Any]) -> str:
 
     Columns: targets, targets without an estimate, median rotation error [deg] and % under 5 / 10 /
     20 deg and over 90 deg (turned the wrong way round), median relative depth error [%] and %
-    under 2 / 5 %, median projected-centre error [px].
+    under 2 / 5 %, median signed depth error [%] (positive = too far), median projected-centre
+    error [px]; rows per object, overall, per visible fraction and per angle of the target's ray
+    from the optical axis.
     """
     head = (f"{'object':>8}  {'targets':>7}  {'missed':>6}  {'rot_med':>7}  {'<5deg':>5}  {'<10deg':>6}  "
-            f"{'<20deg':>6}  {'>90deg':>6}  {'depth_med':>9}  {'<2%':>4}  {'<5%':>4}  {'centre_med':>10}")
+            f"{'<20deg':>6}  {'>90deg':>6}  {'depth_med':>9}  {'<2%':>4}  {'<5%':>4}  {'bias':>7}  {'centre_med':>10}")
     lines = ["pose-error breakdown (medians; % of targets under the thresholds; a target without an "
              "estimate counts as 180 deg, inf depth and centre errors)", head]
 
@@ -92,15 +98,18 @@ def format_breakdown_table(breakdown: dict[str, Any]) -> str:
                 f"{_bd_pct(d['rot_under_5']):>5}  {_bd_pct(d['rot_under_10']):>6}  {_bd_pct(d['rot_under_20']):>6}  "
                 f"{_bd_pct(d.get('rot_over_90')):>6}  "
                 f"{_bd_num(d['depth_rel_median'], 100.0) + ' %':>9}  {_bd_pct(d['depth_under_2pct']):>4}  "
-                f"{_bd_pct(d['depth_under_5pct']):>4}  {_bd_num(d['centre_median_px']) + ' px':>10}")
+                f"{_bd_pct(d['depth_under_5pct']):>4}  {_bd_signed(d.get('depth_bias_median')):>7}  "
+                f"{_bd_num(d['centre_median_px']) + ' px':>10}")
 
     for obj_id, d in breakdown["per_object"].items():
         lines.append(row(str(obj_id), d))
     lines.append(row("all", breakdown["overall"]))
-    if breakdown.get("per_visibility"):
-        lines.append("by visible fraction of the target:")
-        for label, d in breakdown["per_visibility"].items():
-            lines.append(row(label, d))
+    for key, title in (("per_visibility", "by visible fraction of the target:"),
+                       ("per_ray_angle", "by angle of the target's ray from the optical axis:")):
+        if breakdown.get(key):
+            lines.append(title)
+            for label, d in breakdown[key].items():
+                lines.append(row(label, d))
     return "\n".join(lines)
 
 
@@ -125,7 +134,7 @@ def _jsonable(scores: dict[str, Any]) -> dict[str, Any]:
         bd = scores["breakdown"]
         out["breakdown"] = _finite_or_none(
             {"overall": bd["overall"], "per_object": {str(k): v for k, v in bd["per_object"].items()},
-             **({"per_visibility": bd["per_visibility"]} if "per_visibility" in bd else {})}
+             **{k: bd[k] for k in ("per_visibility", "per_ray_angle") if k in bd}}
         )
     return out
 

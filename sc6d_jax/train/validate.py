@@ -175,7 +175,7 @@ class Validator:
         }
         for k in SUMMARY_KEYS:
             if k not in ("n", "missed"):  # every crop is estimated
-                out[f"val_{k}"] = float(s[k])
+                out[f"val_{k}"] = float("nan") if s[k] is None else float(s[k])
         return out
 
 
