@@ -273,3 +273,31 @@ def test_moving_sideways_at_fixed_allocentric_rotation_looks_the_same(q, d1, d2,
     far = np.arccos(np.clip(np.einsum("bi,bi->b", n1, n2), -1, 1)) > 0.2
     V2_ego = np.einsum("bji,bnj->bni", Rc2, np.einsum("bij,nj->bni", R1, X) + t2[:, None])
     assert np.all(np.abs(V2_ego - V1).max(axis=(1, 2))[far] > 1.0)
+
+
+@pytest.mark.parametrize("k", [0, 1, 2, 3])
+def test_turn_pe_is_the_pe_map_of_the_rolled_camera(k):
+    """A crop turned by k quarter turns (rot90(crop, -k)) is what the camera rolled by Rz(90 k)
+    about its optical axis sees: the image turns about the principal point, the box centre with
+    it. turn_pe of the crop's PE map equals the rolled camera's own PE map of its crop."""
+    K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
+    c, side = np.array([470.0, 95.0]), 88.0  # off-axis: the ray is about 20 degrees from the axis
+    pe = g.pe_map(K, g.crop_transform(c, side, S), S)
+    Rz = np.asarray(g.rot_z(k * np.pi / 2))[:2, :2]
+    c_rolled = K[:2, 2] + Rz @ (c - K[:2, 2])
+    expected = np.asarray(g.pe_map(K, g.crop_transform(c_rolled, side, S), S))
+    np.testing.assert_allclose(np.asarray(g.turn_pe(pe, k)), expected, atol=1e-9)
+    np.testing.assert_allclose(g.turn_pe(np.asarray(pe), k), expected, atol=1e-9)  # numpy too
+    assert isinstance(g.turn_pe(np.asarray(pe), k), np.ndarray)
+    if k:  # the unturned map (the authors' augmentation) is not that camera's
+        assert np.abs(np.asarray(pe) - expected).max() > 0.1
+
+
+def test_turn_pe_batched_and_bad_shape():
+    pe = np.random.default_rng(0).normal(size=(3, 8, 8, 2))
+    out = g.turn_pe(pe, 1)
+    for i in range(3):
+        np.testing.assert_array_equal(out[i], g.turn_pe(pe[i], 1))
+    np.testing.assert_array_equal(g.turn_pe(pe, 4), pe)
+    with pytest.raises(ValueError, match="pe must have shape"):
+        g.turn_pe(np.zeros((8, 8, 3)), 1)

@@ -413,3 +413,34 @@ def test_depth_prior_decodes_with_the_matched_rotation(tmp_path, models):
     Ra = np.asarray(egocentric_to_allocentric(jnp.asarray(pred["R"], jnp.float32), jnp.asarray(pred["t"], jnp.float32)))
     _, dz = encode_translation(pred["t"], d["K"], d["center"], d["side"], S)
     split(Ra[:, 2, 2], np.asarray(z_code(dz, jnp.asarray(d["K"]), cfg.loss)))  # the crops' focal lengths differ
+
+
+@pytest.mark.parametrize("pe_turns", [False, True])
+def test_tta_copies_get_the_pe_map_the_model_was_trained_with(est, scene, monkeypatch, pe_turns):
+    """TTA copy k of a crop is the crop turned by k quarter turns; its PE map turns with it for a
+    model trained with pe_turns (turn_pe), and stays as it is for one trained without."""
+    import sc6d_jax.model as M
+    from sc6d_jax.geometry import crop_transform, pe_map, turn_pe
+    from sc6d_jax.inference._predictor import predict_crops
+
+    image, K, boxes, ids = scene
+    seen = []
+    real = M.apply
+
+    def spy(params, mcfg, rgb, pe, *a, **kw):
+        seen.append(np.asarray(pe))
+        return real(params, mcfg, rgb, pe, *a, **kw)
+
+    monkeypatch.setattr(M, "apply", spy)
+    n = len(boxes)
+    crops, center, side = est.make_crops(image, boxes, n)
+    kw, blocks = est.crops_fn(n, tta=True)
+    kw["mcfg"] = dataclasses.replace(est.mcfg, pe_turns=pe_turns)
+    Kb = np.repeat(np.asarray(K, np.float32)[None], n, axis=0)
+    with jax.disable_jit():
+        predict_crops(est.params, blocks, est.library.R, crops, Kb, center, side, est.obj_index(ids), **kw)
+    pe = np.asarray(pe_map(Kb, crop_transform(center, side, est.mcfg.crop_size), est.mcfg.crop_size))
+    got = seen[0].reshape(4, n, *pe.shape[1:])
+    for k in range(4):
+        want = np.asarray(turn_pe(pe, k)) if pe_turns else pe
+        np.testing.assert_allclose(got[k], want, atol=1e-5)

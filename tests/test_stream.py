@@ -291,3 +291,26 @@ def test_hull_vertices_give_the_boxes_of_the_whole_mesh(models):
     flat = np.random.default_rng(0).normal(size=(50, 3)) * [1.0, 1.0, 0.0]
     np.testing.assert_array_equal(hull_vertices(flat), flat)
     np.testing.assert_array_equal(hull_vertices(flat[:3]), flat[:3])
+
+
+def test_pe_turns_turns_the_pe_map_with_the_crop(models):
+    """pe_turns: the same crops and labels, each turned crop's PE map turned with it (turn_pe);
+    the unturned crops keep theirs."""
+    kw = dict(crop_size=32, batch_size=8, workers=0, obj_ids=(1,), augment=True)
+    with CropStream(StreamConfig(str(models), **kw)) as s:
+        plain = s.batch(3)
+    with CropStream(StreamConfig(str(models), pe_turns=True, **kw)) as s:
+        turned = s.batch(3)
+    for key in plain:
+        if key != "pe":
+            np.testing.assert_array_equal(plain[key], turned[key])
+    n_turned = 0
+    for i in range(8):
+        R_allo_true = np.asarray(G.egocentric_to_allocentric(plain["R"][i], plain["t"][i]))
+        D = plain["R_allo"][i] @ R_allo_true.T
+        k = int(np.round(np.arctan2(D[1, 0], D[0, 0]) / (np.pi / 2))) % 4
+        np.testing.assert_allclose(turned["pe"][i], G.turn_pe(plain["pe"][i], k), atol=1e-6)
+        n_turned += k != 0
+        if k:
+            assert not np.allclose(turned["pe"][i], plain["pe"][i])
+    assert n_turned > 0

@@ -55,6 +55,8 @@ class StreamConfig:
         obj_ids: objects to sample (None = every model in the folder); the index of an id in
             this list is the sample's ``obj_idx``.
         augment: colour augmentation (p 0.8) and random in-plane 90-degree rotations.
+        pe_turns: the PE map turns with the crop in that augmentation (``sc6d_jax.geometry.turn_pe``;
+            False = the authors': it stays unturned).
         occlusion: probability that other objects / primitives occlude the target.
         pad: crop padding factor (s_B = pad * max(w, h)).
         box_shift, box_scale: the box jitter that the crop is cut from, the authors' dynamic
@@ -119,6 +121,7 @@ class StreamConfig:
     workers: int = 2
     obj_ids: tuple[int, ...] | None = None
     augment: bool = True
+    pe_turns: bool = False
     occlusion: float = 0.5
     pad: float = 1.5
     box_shift: float = 0.25
@@ -469,7 +472,7 @@ class _Worker:
         t = np.stack([p.t for p in poses])
         delta_xy, delta_z = (np.asarray(a, np.float64) for a in G.encode_translation(t, K, centers, sides, S))
         R_allo = np.asarray(G.egocentric_to_allocentric(R, t), np.float64)
-        pe = np.asarray(G.pe_map(K, T, S), np.float32)
+        pe = np.array(G.pe_map(K, T, S), np.float32)  # writable: pe_turns turns it per crop
         rgb, mask = np.stack(rgbs), np.stack(masks)
         dense = dense_w = None
         if cfg.dense:
@@ -487,6 +490,8 @@ class _Worker:
                     Rz = np.array([[c, -s_, 0], [s_, c, 0], [0, 0, 1]], np.float64)
                     R_allo[j] = Rz @ R_allo[j]
                     delta_xy[j] = Rz[:2, :2] @ delta_xy[j]
+                    if cfg.pe_turns:
+                        pe[j] = G.turn_pe(pe[j], k)
                     if dense is not None:
                         dense[j] = np.rot90(dense[j], -k)
                         dense[j, ..., :3] = dense[j, ..., :3] @ Rz.T.astype(np.float32)

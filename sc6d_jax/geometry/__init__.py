@@ -7,7 +7,7 @@ functions run them automatically whenever their inputs are concrete (outside jit
 """
 
 from sc6d_jax.geometry._allocentric import allocentric_to_egocentric, egocentric_to_allocentric, ray_rotation
-from sc6d_jax.geometry._crops import crop_box, crop_intrinsics, crop_transform, jitter_box, pe_map, warp_crop
+from sc6d_jax.geometry._crops import crop_box, crop_intrinsics, crop_transform, jitter_box, pe_map, turn_pe, warp_crop
 from sc6d_jax.geometry._rotations import (
     axis_angle_to_matrix,
     geodesic_angle,
@@ -78,6 +78,7 @@ __all__ = [
     "sixd_to_matrix",
     "skew",
     "so3_grid",
+    "turn_pe",
     "validate_K",
     "validate_boxes",
     "validate_rotation",

@@ -153,6 +153,25 @@ def _pe_map(K: ArrayLike, T: ArrayLike, out_size: int) -> Array:
     return ray[..., :2] / ray[..., 2:3]
 
 
+def turn_pe(pe: ArrayLike, k: int) -> Array:
+    """The PE map ``[..., S, S, 2]`` of a crop turned by ``k`` quarter turns clockwise
+    (``rot90(crop, -k)``, the in-plane augmentation and the TTA copies), as the camera rolled by
+    ``Rz(90 k)`` about its optical axis would see it: the map's pixels move with the crop and
+    each ray turns with the camera, ``(x, y) -> Rz(90 k) (x, y)``. A crop turned with its PE map
+    unturned shows an off-axis object's perspective stretch (radial, ``sec`` of the ray's angle)
+    along the wrong image axis for its rays. Exact for square pixels (``f_x = f_y``); numpy in,
+    numpy out (the stream's workers), jax in, jax out."""
+    k = int(k) % 4
+    xp = np if isinstance(pe, np.ndarray) else jnp
+    nd = xp.ndim(pe) if xp is jnp else pe.ndim
+    if nd < 3 or pe.shape[-1] != 2:
+        raise ValueError(f"pe must have shape [..., S, S, 2], got {tuple(pe.shape)}")
+    out = xp.rot90(pe, -k, axes=(nd - 3, nd - 2))
+    c, s = ((1, 0), (0, 1), (-1, 0), (0, -1))[k]
+    x, y = out[..., 0], out[..., 1]
+    return xp.stack([c * x - s * y, s * x + c * y], axis=-1).astype(pe.dtype)
+
+
 _CV_DTYPES = (np.uint8, np.uint16, np.int16, np.float32, np.float64)
 
 

@@ -5,7 +5,8 @@ batch of crops; everything that changes the computation (model config, flags, li
 static. It is shared by :class:`sc6d_jax.Estimator` and by the exported predictor.
 
 Test-time augmentation follows the authors: each crop is rotated by 0/90/180/270 degrees
-(one batch of 4B; the PE map is NOT rotated). Rotating the crop content by ``np.rot90(crop,
+(one batch of 4B; the PE map is NOT rotated, unless the model was trained with
+``pe_turns``: then it turns with each copy, ``turn_pe``). Rotating the crop content by ``np.rot90(crop,
 k=-k)`` (clockwise on screen, since image y points down) is what the camera sees when the object
 turns by ``Rz(90k)`` about the optical axis, i.e. the training augmentation
 ``R_allo <- Rz(90k) R_allo``, ``delta_xy <- Rz2(90k) delta_xy``. The delta_xy are rotated back
@@ -30,7 +31,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from sc6d_jax.geometry import allocentric_to_egocentric, crop_transform, decode_translation, pe_map
+from sc6d_jax.geometry import allocentric_to_egocentric, crop_transform, decode_translation, pe_map, turn_pe
 from sc6d_jax.inference._matching import match_library
 from sc6d_jax.inference._refine import refine_rotations
 
@@ -154,7 +155,8 @@ def predict_crops(
     n_copies = 4 if tta else 1
     if tta:
         rgb_in = jnp.concatenate([rotate_crops(rgb, k) for k in range(4)], axis=0)
-        pe_in = jnp.concatenate([pe] * 4, axis=0)  # the PE map is not rotated
+        # the PE map turns with each copy if the model was trained so (mcfg.pe_turns), else not
+        pe_in = jnp.concatenate([turn_pe(pe, k) if mcfg.pe_turns else pe for k in range(4)], axis=0)
         obj_in = jnp.concatenate([obj_idx] * 4, axis=0)
     else:
         rgb_in, pe_in, obj_in = rgb, pe, obj_idx

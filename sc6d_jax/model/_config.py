@@ -55,6 +55,12 @@ class ModelConfig:
       (False = paper: the mask is only concatenated).
     - z_size_input: give the depth head the apparent size of the predicted visible mask (log
       area, log spread in x and y; ``_pose_decoder.mask_size_features``) next to its features.
+    - pe_turns: the PE map turns with the crop (``sc6d_jax.geometry.turn_pe``) wherever the
+      crop is turned by quarter turns: the training stream's in-plane augmentation and the
+      TTA copies. Off (the authors'): the map stays as it was, so for 3 crops in 4 an off-axis
+      object's perspective stretch lies along another image axis than its rays say, and the
+      depth head cannot learn the stretch's correction (it over-estimates near the image
+      centre and under-estimates towards the edges).
     - rot_readout: a per-object linear map from the unit rotation embedding to the first two
       columns of the allocentric rotation (``out["rot_6d"]`` (B,6)), trained by
       ``LossConfig.w_rot_readout``: the embedding itself has to carry the angle wherever the
@@ -100,6 +106,7 @@ class ModelConfig:
     pose_downsample: int = 2
     rot_readout: bool = False
     z_rot: bool = False
+    pe_turns: bool = False
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:

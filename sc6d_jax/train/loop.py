@@ -321,6 +321,8 @@ def train(
         common["curriculum"] = cfg.curriculum_steps
     if getattr(cfg.loss, "w_dense", 0) > 0:
         common["dense"] = True
+    if getattr(cfg.model, "pe_turns", False):
+        common["pe_turns"] = True
     for name in ("materials", "resample", "sensor", "distractors", "max_faces", "object_gain",
                  "scene_backgrounds"):  # stream options, when on
         if getattr(cfg.stream, name):
