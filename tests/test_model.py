@@ -152,6 +152,7 @@ SWITCHES = [
     {"pose_downsample": 1, "crop_size": 64},
     {"pose_downsample": 0, "crop_size": 64},
     {"rot_readout": True},
+    {"z_ray_input": True, "z_size_input": True},
 ] + [{"backbone": name} for name in BACKBONES]
 
 
@@ -170,6 +171,34 @@ def test_output_shapes_for_every_switch(switch):
     for cands in (jax.ShapeDtypeStruct((7, 3, 3), jnp.float32), jax.ShapeDtypeStruct((4, 7, 3, 3), jnp.float32)):
         lg = jax.eval_shape(lambda p, o, r: rotation_logits(p, cfg, o, r, obj), params, out, cands)
         assert lg.shape == (4, 7)
+
+
+def test_z_ray_input_reads_the_crop_centres_ray_and_moves_only_the_depth():
+    """ray_features: the mean of the PE map (its centre's ray) and its second-order terms; with
+    z_ray_input the depth logits see where the same crop lies in the image; the rotation
+    embedding is the one of the model without that input."""
+    from sc6d_jax.geometry import crop_transform, pe_map
+    from sc6d_jax.model._pose_decoder import ray_features
+
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    pe = np.asarray(pe_map(K, crop_transform(np.array([570.0, 40.0]), 100.0, 32), 32))[None]
+    x, y = 250.0 / 500.0, -200.0 / 500.0
+    np.testing.assert_allclose(np.asarray(ray_features(pe))[0], [2 * x, 2 * y, 4 * x * x, 4 * y * y, 4 * x * y],
+                               rtol=1e-5)
+    cfg = dataclasses.replace(TINY, z_ray_input=True)
+    params = init(jax.random.key(0), cfg)
+    params["pose_decoder"]["z"]["ray"]["w"] = params["pose_decoder"]["z"]["ray"]["w"] + 0.5  # as if trained
+    rgb, pe1, obj = _inputs(cfg, 2)
+    pe2 = pe1 + jnp.asarray([0.3, -0.2], pe1.dtype)  # the same crops elsewhere in the image
+    a, b = apply(params, cfg, rgb, pe1, obj), apply(params, cfg, rgb, pe2, obj)
+    assert float(jnp.max(jnp.abs(a["z_logits"] - b["z_logits"]))) > 1e-4
+    # the new input feeds the depth head alone
+    np.testing.assert_array_equal(np.asarray(a["rot_emb"]), np.asarray(
+        apply({**params, "pose_decoder": {**params["pose_decoder"], "z": {
+            k: v for k, v in params["pose_decoder"]["z"].items() if k != "ray"}}},
+              dataclasses.replace(cfg, z_ray_input=False), rgb, pe1, obj)["rot_emb"]))
+    with pytest.raises(ValueError, match="z_ray_input needs use_pe"):
+        dataclasses.replace(TINY, z_ray_input=True, use_pe=False)
 
 
 def test_pose_downsample_gives_the_heads_a_map_twice_the_size_per_step():

@@ -61,6 +61,11 @@ class ModelConfig:
       object's perspective stretch lies along another image axis than its rays say, and the
       depth head cannot learn the stretch's correction (it over-estimates near the image
       centre and under-estimates towards the edges).
+    - z_ray_input: give the depth head the crop centre's ray (the mean of the PE map) and its
+      second-order terms (``_pose_decoder.ray_features``): an off-axis object looks stretched
+      along its ray by up to ``1/cos`` of the ray's angle, which the depth code (read off the
+      apparent size) has to undo; GroupNorm removes such a near-constant input from the
+      features. Needs ``use_pe``; use with ``pe_turns`` (else the ray disagrees with turned crops).
     - rot_readout: a per-object linear map from the unit rotation embedding to the first two
       columns of the allocentric rotation (``out["rot_6d"]`` (B,6)), trained by
       ``LossConfig.w_rot_readout``: the embedding itself has to carry the angle wherever the
@@ -107,6 +112,7 @@ class ModelConfig:
     rot_readout: bool = False
     z_rot: bool = False
     pe_turns: bool = False
+    z_ray_input: bool = False
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:
@@ -126,6 +132,8 @@ class ModelConfig:
                 raise ValueError(f"{name} must be a positive int, got {v!r}")
         if self.pose_downsample not in (0, 1, 2):
             raise ValueError(f"pose_downsample must be 0, 1 or 2, got {self.pose_downsample!r}")
+        if self.z_ray_input and not self.use_pe:
+            raise ValueError("z_ray_input needs use_pe=True (the ray is read off the PE map)")
         if self.decoder_width < 0 or self.ipdf_pe_freqs < 0 or self.so3_pe_freqs < 0:
             raise ValueError("decoder_width, ipdf_pe_freqs and so3_pe_freqs must be >= 0")
 

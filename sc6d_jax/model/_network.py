@@ -95,7 +95,7 @@ def apply(
             mask, on = teacher_gate
             gate = jnp.where(jnp.asarray(on)[:, None, None], jnp.asarray(mask, gate.dtype), gate)
         feat = feat * gate[..., None]
-    rot, dxy, zl = pose_decoder(params["pose_decoder"], cfg, feat, mask_logit)
+    rot, dxy, zl = pose_decoder(params["pose_decoder"], cfg, feat, mask_logit, pe if cfg.use_pe else None)
     emb = _l2n(rot)
     if cfg.rot_readout:
         ro = params["rot_readout"]

@@ -50,7 +50,25 @@ def init_pose_decoder(key: np.random.Generator, cfg: ModelConfig) -> dict:
         }
     if cfg.z_size_input:
         params["z"]["size"] = init_dense(split(k[-1], 4)[3], N_SIZE_FEATURES, hh)
+    if cfg.z_ray_input:
+        params["z"]["ray"] = init_dense(split(k[-1], 5)[4], N_RAY_FEATURES, hh)
     return params
+
+
+#: Features of the crop's ray fed to the depth head (z_ray_input).
+N_RAY_FEATURES = 5
+
+
+def ray_features(pe: jax.Array) -> jax.Array:
+    """(B, 5) the crop centre's ray (x, y) = the mean of its PE map (B,S,S,2) (the map is affine
+    in the crop's pixels), and its second-order terms (x^2, y^2, xy), which describe the
+    perspective stretch along the ray's direction (``1/cos`` of its angle, about ``1 + r r^T / 2``).
+    Scaled to about unit size over a 60-degree field of view. The depth code is read off the
+    object's apparent size in the crop; GroupNorm removes a near-constant input such as the ray
+    from the features, so it is given explicitly."""
+    r = jnp.mean(pe.astype(jnp.float32), axis=(1, 2))
+    x, y = r[:, 0], r[:, 1]
+    return jnp.stack([2.0 * x, 2.0 * y, 4.0 * x * x, 4.0 * y * y, 4.0 * x * y], axis=-1)
 
 
 #: Apparent-size features of the predicted visible mask fed to the depth head (z_size_input).
@@ -76,9 +94,12 @@ def mask_size_features(mask_logit: jax.Array) -> jax.Array:
 
 
 def pose_decoder(
-    params: dict, cfg: ModelConfig, feat: jax.Array, mask_logit: jax.Array
+    params: dict, cfg: ModelConfig, feat: jax.Array, mask_logit: jax.Array, pe: jax.Array | None = None
 ) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Returns (raw rotation feature (B,emb_dim), delta_xy (B,2), z logits (B,n_z_bins))."""
+    """Returns (raw rotation feature (B,emb_dim), delta_xy (B,2), z logits (B,n_z_bins)).
+    ``pe`` (B,S,S,2): the crops' PE maps, needed with ``cfg.z_ray_input``."""
+    if cfg.z_ray_input and pe is None:
+        raise ValueError("z_ray_input needs the PE map (use_pe=True)")
     x = jnp.concatenate([feat, jax.nn.sigmoid(mask_logit)[..., None]], axis=-1)
     x = conv_gn_relu(x, params["down1"], cfg, stride=2 if cfg.pose_downsample >= 1 else 1)
     x = conv_gn_relu(x, params["down2"], cfg, stride=2 if cfg.pose_downsample == 2 else 1)
@@ -95,6 +116,8 @@ def pose_decoder(
         h = dense(h, p["fc"]["w"], p["fc"]["b"])
         if name == "z" and "size" in p:
             h = h + dense(mask_size_features(mask_logit), p["size"]["w"], p["size"]["b"])
+        if name == "z" and "ray" in p:
+            h = h + dense(ray_features(pe), p["ray"]["w"], p["ray"]["b"])
         h = jax.nn.relu(group_norm(h, p["fc_gn"]["scale"], p["fc_gn"]["bias"], num_groups(h.shape[-1], cfg.gn_groups)))
         outs.append(dense(h, p["out"]["w"], p["out"]["b"]))
     return outs[0], outs[1], outs[2]
