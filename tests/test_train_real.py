@@ -55,6 +55,7 @@ def test_presets_roundtrip_through_json():
     assert (cpu.model.gn_groups, cpu.loss.z_norm, cpu.loss.z_bins, cpu.model.mask_gate) == (4, "focal", "log", True)
     assert (cpu.loss.n_negatives, cpu.loss.n_local_negatives) == (1000, 64)  # 1,000 shared + 64 near the GT
     assert cpu.model.pose_downsample == 1 and preset("tiny").model.pose_downsample == 2  # dilated block at S/8
+    assert cpu.model.pe_turns and cpu.model.z_ray_input and not preset("paper").model.pe_turns  # the crop's ray
     paper_loss = paper.loss
     assert (paper_loss.z_norm, paper_loss.z_bins, paper_loss.z_loss, paper.model.gn_groups) == ("none", "linear", "focal", 32)
     long = preset("long")

@@ -477,6 +477,19 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # 80x80 crops at equal minutes (obj 1, 4,300 steps against 6,000, 14.5 vs 13.2 min): test AR
         # 0.610 vs 0.612 without TTA, 0.646 vs 0.664 fused (-0.019 +- 0.012), depth 2.2 vs 2.5 %:
         # nothing at equal minutes (obj1_crop80*).
+        # - the PE map turned with the crop in the quarter-turn augmentation and the TTA copies
+        #   (model.pe_turns) and the crop centre's ray given to the depth head (model.z_ray_input):
+        #   an off-axis object is seen stretched along its ray (1/cos of its angle), and the depth
+        #   head, blind to where its crop lies (GroupNorm removes the near-constant ray; the
+        #   authors' unturned map contradicts 3 turned crops in 4), was too far near the image
+        #   centre and too near at its edges (obj 1, test: +2.2 % under 10 degrees, -1.7 % at 20
+        #   and more). Obj 1, 6,000 steps: validation 0.648 / 9.4 deg / 2.39 % vs 0.608 / 10.4 /
+        #   3.17 % (+0.040 +- 0.014, same crops); test AR 0.646 vs 0.612 (+0.034 +- 0.013) without
+        #   TTA, 0.676 vs 0.664 fused, depth 1.98 vs 2.53 % (obj1_pe_turns*). 14 objects, one hour:
+        #   validation 0.458 / 29.6 deg / 2.26 % vs 0.451 / 25.8 / 2.54 %; 390 targets 0.391 vs
+        #   0.400 (-0.009 +- 0.012) without TTA, 0.441 vs 0.431 (+0.011 +- 0.011) fused; demo 0.381
+        #   vs 0.386, fused 0.466 vs 0.419 (+0.047 +- 0.033); depth 2.3 vs 2.8 %, rotation behind
+        #   (one seed; cpu_14objects_h1_ray*).
         # 26,000 steps: about an hour on 2 cores with one renderer worker. The "long" preset is
         # the same recipe over 150,000 steps, run in legs (sc6d carry); the shipped builtin was
         # trained with the earlier 5,000 + 256 negatives (8.6 hours).
@@ -485,6 +498,7 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
                 n_objects=1, crop_size=64, backbone="tiny", width=16, decoder_width=32, feat_dim=32,
                 pose_width=32, head_hidden=128, so3_hidden=128, n_z_bins=128, conv_impl="lax",
                 per_object_decoder=False, gn_groups=4, z_size_input=True, mask_gate=True, pose_downsample=1,
+                pe_turns=True, z_ray_input=True,
             ),
             loss=LossConfig(n_negatives=1000, rebase_negatives=False, n_local_negatives=64, **CPU_DEPTH_LOSS),
             stream=StreamSettings(batch_size=32, curriculum_fraction=0.3, box_shift=0.0, box_scale=(1.0, 1.0)),
