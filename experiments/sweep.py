@@ -101,13 +101,14 @@ class Row:
     predict: tuple[str, ...] = field(default=())
 
 
-_NO_PE = "model.use_pe=false"
+# without the PE map the depth head has no ray either (the cpu preset reads it off the map)
+_NO_PE = ("model.use_pe=false", "model.z_ray_input=false")
 _PAPER_TTA = ("--tta", "--tta-mode", "best")
 ROWS: tuple[Row, ...] = (
-    Row("A0", "z regression", "A0", ("loss.z_mode=regression", "loss.z_loss=ce", _NO_PE)),
-    Row("A1", "z classification", "A1", ("loss.z_mode=classification", "loss.z_loss=ce", _NO_PE)),
-    Row("A2", "+ focal loss", "A2", ("loss.z_mode=classification", "loss.z_loss=focal", _NO_PE)),
-    Row("A3", "+ expectation", "A3", ("loss.z_mode=expectation", "loss.z_loss=focal", _NO_PE)),
+    Row("A0", "z regression", "A0", ("loss.z_mode=regression", "loss.z_loss=ce", *_NO_PE)),
+    Row("A1", "z classification", "A1", ("loss.z_mode=classification", "loss.z_loss=ce", *_NO_PE)),
+    Row("A2", "+ focal loss", "A2", ("loss.z_mode=classification", "loss.z_loss=focal", *_NO_PE)),
+    Row("A3", "+ expectation", "A3", ("loss.z_mode=expectation", "loss.z_loss=focal", *_NO_PE)),
     Row("A4", "+ PE map", "A4", ("loss.z_mode=expectation", "loss.z_loss=focal", "model.use_pe=true")),
     # TTA as the paper's (the copy with the highest cosine; sc6d predict --tta fuses the copies)
     Row("TTA", "+ TTA (ours)", "A4", ("loss.z_mode=expectation", "loss.z_loss=focal", "model.use_pe=true"), _PAPER_TTA),
