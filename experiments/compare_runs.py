@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "experiments"))
 
-from learning_curve import run_scores  # noqa: E402
+from learning_curve import _uncertainty, run_scores  # noqa: E402
 
 TTA_TAGS = {"none": ("none", ()), "fuse": ("tta", ("--tta",))}
 COLUMNS = ("run", "tta", "targets", "ar", "ar_se", "ar_diff_vs_first", "ar_diff_se", "ar_vsd", "ar_mssd", "ar_mspd",
@@ -49,23 +49,17 @@ def parse_runs(items: list[str]) -> list[tuple[str, str]]:
 def compare(dataset: Path, out: Path, runs: list[tuple[str, str]], ttas: list[str],
             predict_args: tuple[str, ...] = ()) -> list[dict]:
     """Score every run (cached in ``out``) and return one row per TTA mode and run."""
-    from sc6d_jax.metrics import paired_difference
-
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for tta in ttas:
         tag, args = TTA_TAGS[tta]
         scores = {name: run_scores(run, dataset, out, f"{name}_{tag}", (*args, *predict_args)) for name, run in runs}
-        first = runs[0][0]
+        base = scores[runs[0][0]]
         for name, _ in runs:
             s = scores[name]
             b = s.get("breakdown", {}).get("overall", {})
-            diff, diff_se = (None, None)
-            if name != first:
-                diff, diff_se, _ = paired_difference(scores[first], s)
             rows.append({
-                "run": name, "tta": tta, "targets": b.get("n"), "ar": s["bop19_average_recall"],
-                "ar_se": s.get("average_recall_standard_error"), "ar_diff_vs_first": diff, "ar_diff_se": diff_se,
+                "run": name, "tta": tta, "targets": b.get("n"), "ar": s["bop19_average_recall"], **_uncertainty(s, base),
                 **{k: s.get(f"bop19_average_recall_{k[3:]}") for k in ("ar_vsd", "ar_mssd", "ar_mspd")},
                 **{k: b.get(k) for k in ("rot_median_deg", "depth_rel_median", "depth_bias_median", "centre_median_px")},
             })

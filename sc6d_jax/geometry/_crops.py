@@ -163,7 +163,7 @@ def turn_pe(pe: ArrayLike, k: int) -> Array:
     numpy out (the stream's workers), jax in, jax out."""
     k = int(k) % 4
     xp = np if isinstance(pe, np.ndarray) else jnp
-    nd = xp.ndim(pe) if xp is jnp else pe.ndim
+    nd = np.ndim(pe)
     if nd < 3 or pe.shape[-1] != 2:
         raise ValueError(f"pe must have shape [..., S, S, 2], got {tuple(pe.shape)}")
     out = xp.rot90(pe, -k, axes=(nd - 3, nd - 2))

@@ -225,7 +225,7 @@ def breakdown_errors(
 
 # ----------------------------------------------------------------------------- summary
 def _summary(rot: np.ndarray, depth: np.ndarray, centre: np.ndarray, missed: int,
-             signed: np.ndarray | None = None) -> dict[str, Any]:
+             signed: np.ndarray) -> dict[str, Any]:
     n = len(rot)
     if n == 0:
         return {k: (0 if k in ("n", "missed") else None) for k in SUMMARY_KEYS}
@@ -245,11 +245,9 @@ def _summary(rot: np.ndarray, depth: np.ndarray, centre: np.ndarray, missed: int
     }
 
 
-def _finite_median(x: np.ndarray | None) -> float | None:
+def _finite_median(x: np.ndarray) -> float | None:
     """Median of the finite entries (None without any): the signed depth error of the estimated
     targets (a miss has none)."""
-    if x is None:
-        return None
     x = x[np.isfinite(x)]
     return float(np.median(x)) if len(x) else None
 
