@@ -96,6 +96,32 @@ def test_exact_boxes_frame_the_object_and_keep_the_poses(models):
         StreamConfig(str(models), box_shift=-0.1)
 
 
+def test_placement_sets_where_the_target_lies_in_the_image(models):
+    """placement: the target's centre projects to (u, v) uniform in that range of fractions of
+    the image; the same random numbers are drawn, so rotations and depths stay those of the default."""
+    from sc6d_jax.data import IMAGE_H, IMAGE_W
+
+    kw = dict(crop_size=32, batch_size=16, workers=0, seed=5, augment=False, occlusion=0.0)
+    uv = {}
+    batches = {}
+    for pl in ((0.15, 0.85), (0.05, 0.95), (0.5, 0.5)):
+        with CropStream(StreamConfig(str(models), placement=pl, **kw)) as s:
+            b = s.batch(0)
+        p = np.einsum("bij,bj->bi", b["K"], b["t"])
+        uv[pl] = np.stack([p[:, 0] / p[:, 2] / IMAGE_W, p[:, 1] / p[:, 2] / IMAGE_H], 1)
+        batches[pl] = b
+    np.testing.assert_allclose(uv[(0.5, 0.5)], 0.5, atol=1e-6)
+    assert uv[(0.15, 0.85)].min() >= 0.15 - 1e-6 and uv[(0.15, 0.85)].max() <= 0.85 + 1e-6
+    # the same draws, stretched about the centre: (u - 0.5) grows by 0.45 / 0.35
+    np.testing.assert_allclose(uv[(0.05, 0.95)] - 0.5, (uv[(0.15, 0.85)] - 0.5) * 0.45 / 0.35, atol=1e-6)
+    for k in ("R", "obj_id"):
+        np.testing.assert_array_equal(batches[(0.05, 0.95)][k], batches[(0.15, 0.85)][k])
+    np.testing.assert_allclose(batches[(0.05, 0.95)]["t"][:, 2], batches[(0.15, 0.85)]["t"][:, 2], rtol=1e-9)
+    for bad in ((0.9, 0.1), (-0.1, 0.5), (0.5,)):
+        with pytest.raises(ValueError, match="placement"):
+            StreamConfig(str(models), placement=bad)
+
+
 def test_visible_boxes_frame_the_visible_part_of_occluded_targets(models):
     """box_source="visible": an occluded target's crop is cut from its visible box, so its visible
     pixels span S / pad along the longer side, centred, as a crop cut from a ground truth's

@@ -74,6 +74,9 @@ class StreamConfig:
             box, so occluded crops cost two renders; unoccluded ones are cut from the amodal box
             (their visible box). The jitter is applied to the visible box with the same draws.
         distance: camera distance range in object diameters.
+        placement: (low, high): the target's centre projects to (u, v) drawn uniformly in this
+            range of fractions of the image's width and height; the default (0.15, 0.85) keeps
+            it about 20 degrees or less off the optical axis, (0.05, 0.95) reaches about 30.
         background: "textured" (procedural patterns) or "plain" (one random colour per crop):
             plain backgrounds and no occlusion make a much easier task for tiny smoke runs.
         dense: also render depth and return dense geometric targets of the target's visible
@@ -128,6 +131,7 @@ class StreamConfig:
     box_scale: tuple[float, float] = (0.75, 1.25)
     box_source: str = "amodal"
     distance: tuple[float, float] = (2.5, 9.0)
+    placement: tuple[float, float] = (0.15, 0.85)
     background: str = "textured"
     curriculum: int = 0
     dense: bool = False
@@ -144,6 +148,10 @@ class StreamConfig:
             raise ValueError(f"scene_backgrounds must be a probability in [0, 1], got {self.scene_backgrounds!r}")
         if self.object_gain is not None:
             object.__setattr__(self, "object_gain", positive_range(self.object_gain, "object_gain"))
+        pl = tuple(float(x) for x in self.placement) if np.ndim(self.placement) == 1 else ()
+        if len(pl) != 2 or not 0.0 <= pl[0] <= pl[1] <= 1.0:
+            raise ValueError(f"placement must be (low, high) with 0 <= low <= high <= 1, got {self.placement!r}")
+        object.__setattr__(self, "placement", pl)
         if self.background not in ("textured", "plain"):
             raise ValueError(f"background must be 'textured' or 'plain', got {self.background!r}")
         if self.box_source not in ("amodal", "visible"):
@@ -336,7 +344,7 @@ class _Worker:
 
         cfg = self.cfg
         poses = [sample_pose(r, self.obj_ids, self.vertices, self.diameters, cfg.distance, box_shift=cfg.box_shift,
-                             box_scale=cfg.box_scale) for r in rngs]
+                             box_scale=cfg.box_scale, placement=cfg.placement) for r in rngs]
         centers = np.array([[p.box[0] + p.box[2] / 2, p.box[1] + p.box[3] / 2] for p in poses])
         sides = np.array([cfg.pad * max(p.box[2], p.box[3]) for p in poses])
         T = np.asarray(G.crop_transform(centers, sides, cfg.crop_size), np.float64)
@@ -710,7 +718,8 @@ def delta_z_range(
     rng = np.random.default_rng([cfg.seed, 2**31 - 1])
     dz = []
     for _ in range(n):
-        p = sample_pose(rng, obj_ids, verts, diam, cfg.distance, box_shift=cfg.box_shift, box_scale=cfg.box_scale)
+        p = sample_pose(rng, obj_ids, verts, diam, cfg.distance, box_shift=cfg.box_shift, box_scale=cfg.box_scale,
+                        placement=cfg.placement)
         side = cfg.pad * max(p.box[2], p.box[3])
         d = p.t[2] * side / cfg.crop_size
         if focal_ref is not None:
