@@ -152,7 +152,7 @@ SWITCHES = [
     {"pose_downsample": 1, "crop_size": 64},
     {"pose_downsample": 0, "crop_size": 64},
     {"rot_readout": True},
-    {"z_ray_input": True, "z_size_input": True},
+    {"z_ray_input": True, "z_size_input": True, "z_scale_input": True},
 ] + [{"backbone": name} for name in BACKBONES]
 
 
@@ -199,6 +199,34 @@ def test_z_ray_input_reads_the_crop_centres_ray_and_moves_only_the_depth():
               dataclasses.replace(cfg, z_ray_input=False), rgb, pe1, obj)["rot_emb"]))
     with pytest.raises(ValueError, match="z_ray_input needs use_pe"):
         dataclasses.replace(TINY, z_ray_input=True, use_pe=False)
+
+
+def test_z_scale_input_reads_the_crops_angular_size_and_moves_only_the_depth():
+    """scale_features: the log of the crop's angular side (side / f for a square crop, whatever
+    its place in the image and its quarter turns) minus the reference; with z_scale_input the
+    depth logits see how large an angle the same crop spans; the rotation embedding does not."""
+    from sc6d_jax.geometry import crop_transform, pe_map, turn_pe
+    from sc6d_jax.model._pose_decoder import SCALE_LOG_REF, scale_features
+
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    for centre, side in (((570.0, 40.0), 100.0), ((320.0, 240.0), 300.0)):
+        pe = np.asarray(pe_map(K, crop_transform(np.array(centre), side, 32), 32))[None]
+        want = np.log(side / 500.0) - SCALE_LOG_REF
+        for k in range(4):
+            np.testing.assert_allclose(np.asarray(scale_features(np.asarray(turn_pe(pe, k))))[0], [want], atol=1e-4)
+    cfg = dataclasses.replace(TINY, z_scale_input=True)
+    params = init(jax.random.key(0), cfg)
+    params["pose_decoder"]["z"]["scale"]["w"] = params["pose_decoder"]["z"]["scale"]["w"] + 0.5  # as if trained
+    rgb, pe1, obj = _inputs(cfg, 2)
+    pe2 = pe1 * 1.5  # the same crops, a wider angle
+    a, b = apply(params, cfg, rgb, pe1, obj), apply(params, cfg, rgb, pe2, obj)
+    assert float(jnp.max(jnp.abs(a["z_logits"] - b["z_logits"]))) > 1e-4
+    np.testing.assert_array_equal(np.asarray(a["rot_emb"]), np.asarray(
+        apply({**params, "pose_decoder": {**params["pose_decoder"], "z": {
+            k: v for k, v in params["pose_decoder"]["z"].items() if k != "scale"}}},
+              dataclasses.replace(cfg, z_scale_input=False), rgb, pe1, obj)["rot_emb"]))
+    with pytest.raises(ValueError, match="z_scale_input needs use_pe"):
+        dataclasses.replace(TINY, z_scale_input=True, use_pe=False)
 
 
 def test_pose_downsample_gives_the_heads_a_map_twice_the_size_per_step():

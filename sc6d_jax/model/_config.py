@@ -66,6 +66,12 @@ class ModelConfig:
       along its ray by up to ``1/cos`` of the ray's angle, which the depth code (read off the
       apparent size) has to undo; GroupNorm removes such a near-constant input from the
       features. Needs ``use_pe``; use with ``pe_turns`` (else the ray disagrees with turned crops).
+    - z_scale_input: give the depth head the crop's angular size (the log of the side its PE map
+      spans, ``_pose_decoder.scale_features``). The depth code is nearly scale-invariant, but not
+      at close range: the near side of an object looks larger than the far side, so the box (and
+      the code) grows with the ratio of the object's size to its distance, which the crop's
+      appearance shows only faintly at 64 pixels and the angular size shows directly. GroupNorm
+      removes the PE map's spread as it removes its mean. Needs ``use_pe``.
     - rot_readout: a per-object linear map from the unit rotation embedding to the first two
       columns of the allocentric rotation (``out["rot_6d"]`` (B,6)), trained by
       ``LossConfig.w_rot_readout``: the embedding itself has to carry the angle wherever the
@@ -113,6 +119,7 @@ class ModelConfig:
     z_rot: bool = False
     pe_turns: bool = False
     z_ray_input: bool = False
+    z_scale_input: bool = False
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:
@@ -134,6 +141,8 @@ class ModelConfig:
             raise ValueError(f"pose_downsample must be 0, 1 or 2, got {self.pose_downsample!r}")
         if self.z_ray_input and not self.use_pe:
             raise ValueError("z_ray_input needs use_pe=True (the ray is read off the PE map)")
+        if self.z_scale_input and not self.use_pe:
+            raise ValueError("z_scale_input needs use_pe=True (the crop's angular size is read off the PE map)")
         if self.decoder_width < 0 or self.ipdf_pe_freqs < 0 or self.so3_pe_freqs < 0:
             raise ValueError("decoder_width, ipdf_pe_freqs and so3_pe_freqs must be >= 0")
 

@@ -52,6 +52,8 @@ def init_pose_decoder(key: np.random.Generator, cfg: ModelConfig) -> dict:
         params["z"]["size"] = init_dense(split(k[-1], 4)[3], N_SIZE_FEATURES, hh)
     if cfg.z_ray_input:
         params["z"]["ray"] = init_dense(split(k[-1], 5)[4], N_RAY_FEATURES, hh)
+    if cfg.z_scale_input:
+        params["z"]["scale"] = init_dense(split(k[-1], 6)[5], N_SCALE_FEATURES, hh)
     return params
 
 
@@ -69,6 +71,27 @@ def ray_features(pe: jax.Array) -> jax.Array:
     r = jnp.mean(pe.astype(jnp.float32), axis=(1, 2))
     x, y = r[:, 0], r[:, 1]
     return jnp.stack([2.0 * x, 2.0 * y, 4.0 * x * x, 4.0 * y * y, 4.0 * x * y], axis=-1)
+
+
+#: Features of the crop's angular size fed to the depth head (z_scale_input).
+N_SCALE_FEATURES = 1
+
+#: log angular size of a typical crop (about 0.25 rad: a 150-pixel side at f = 600), subtracted
+SCALE_LOG_REF = -1.4
+
+
+def scale_features(pe: jax.Array) -> jax.Array:
+    """(B, 1) log of the crop's angular size: the square root of the area its PE map (B,S,S,2)
+    spans (the map is affine in the crop's pixels; the area is unchanged by ``turn_pe``), centred
+    on about 0.25 rad (a 150-pixel crop side at f = 600; the stream's crops span about -1 to +1).
+    An object at a few diameters is seen in perspective, its near side larger than its far side,
+    so its box and depth code depend on how close it is; the angular size tells that directly."""
+    pe = pe.astype(jnp.float32)
+    s = pe.shape[1]
+    du = (pe[:, 0, -1] - pe[:, 0, 0]) * (s / (s - 1))  # along the crop's x, over its whole side
+    dv = (pe[:, -1, 0] - pe[:, 0, 0]) * (s / (s - 1))
+    area = jnp.abs(du[:, 0] * dv[:, 1] - du[:, 1] * dv[:, 0])
+    return (0.5 * jnp.log(area + 1e-12) - SCALE_LOG_REF)[:, None]
 
 
 #: Apparent-size features of the predicted visible mask fed to the depth head (z_size_input).
@@ -98,8 +121,8 @@ def pose_decoder(
 ) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Returns (raw rotation feature (B,emb_dim), delta_xy (B,2), z logits (B,n_z_bins)).
     ``pe`` (B,S,S,2): the crops' PE maps, needed with ``cfg.z_ray_input``."""
-    if cfg.z_ray_input and pe is None:
-        raise ValueError("z_ray_input needs the PE map (use_pe=True)")
+    if (cfg.z_ray_input or cfg.z_scale_input) and pe is None:
+        raise ValueError("z_ray_input and z_scale_input need the PE map (use_pe=True)")
     x = jnp.concatenate([feat, jax.nn.sigmoid(mask_logit)[..., None]], axis=-1)
     x = conv_gn_relu(x, params["down1"], cfg, stride=2 if cfg.pose_downsample >= 1 else 1)
     x = conv_gn_relu(x, params["down2"], cfg, stride=2 if cfg.pose_downsample == 2 else 1)
@@ -118,6 +141,8 @@ def pose_decoder(
             h = h + dense(mask_size_features(mask_logit), p["size"]["w"], p["size"]["b"])
         if name == "z" and "ray" in p:
             h = h + dense(ray_features(pe), p["ray"]["w"], p["ray"]["b"])
+        if name == "z" and "scale" in p:
+            h = h + dense(scale_features(pe), p["scale"]["w"], p["scale"]["b"])
         h = jax.nn.relu(group_norm(h, p["fc_gn"]["scale"], p["fc_gn"]["bias"], num_groups(h.shape[-1], cfg.gn_groups)))
         outs.append(dense(h, p["out"]["w"], p["out"]["b"]))
     return outs[0], outs[1], outs[2]
