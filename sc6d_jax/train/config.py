@@ -503,6 +503,8 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # 0.15-0.85; obj 1, 6,000 steps): the bias at >= 20 degrees goes (-0.1 vs -1.7 %), but
         # test AR 0.616 vs 0.646 (-0.030 +- 0.015) without TTA, 0.663 vs 0.676 fused, depth 2.5 vs
         # 2.0 %: not kept (obj1_placement*).
+        # The crop's angular size given to the depth head (model.z_scale_input; obj 1, 6,000 steps):
+        # test AR 0.645 vs 0.646 without TTA, 0.681 vs 0.676 fused: the same, not kept (obj1_scale*).
         # 26,000 steps: about an hour on 2 cores with one renderer worker. The "long" preset is
         # the same recipe over 150,000 steps, run in legs (sc6d carry); the shipped builtin was
         # trained with the earlier 5,000 + 256 negatives (8.6 hours).
