@@ -122,6 +122,40 @@ def test_placement_sets_where_the_target_lies_in_the_image(models):
             StreamConfig(str(models), placement=bad)
 
 
+def test_image_border_blacks_out_what_lies_beyond_the_image(models):
+    """image_border: crop pixels from outside the 640x480 image are black and not visible, as in
+    a crop cut from the image with a zero border (inside_image agrees with warp_crop); the rest
+    of the crop and the labels are those of the stream without it."""
+    from sc6d_jax.data._stream import inside_image
+
+    T = np.array([[0.5, 0, 10.0], [0, 0.5, -3.0], [0, 0, 1]])  # crop px = image px / 2 + offset
+    inside = inside_image(T, 32)
+    warped = G.warp_crop(np.full((480, 640), 255, np.uint8), T, 32)
+    np.testing.assert_array_equal(inside, warped > 0)
+    assert inside.sum() < inside.size  # the test transform does reach beyond the image
+
+    kw = dict(crop_size=32, batch_size=16, workers=0, seed=2, occlusion=0.0)
+    n_cut = 0
+    for augment in (False, True):
+        with CropStream(StreamConfig(str(models), augment=augment, **kw)) as s:
+            plain = [s.batch(b) for b in range(3)]
+        with CropStream(StreamConfig(str(models), augment=augment, image_border=True, **kw)) as s:
+            border = [s.batch(b) for b in range(3)]
+        for a, b in zip(plain, border):
+            np.testing.assert_array_equal(a["R_allo"], b["R_allo"])
+            np.testing.assert_array_equal(a["delta_z"], b["delta_z"])
+            out = ~inside_image(np.asarray(G.crop_transform(a["center"], a["side"], 32), np.float64), 32)
+            if augment:  # turned by the augmentation after the black-out: count the black pixels
+                black = np.all(b["rgb"] == 0, axis=-1)
+                assert np.all(black.sum((1, 2)) >= out.sum((1, 2)))
+                continue
+            n_cut += int(out.any(axis=(1, 2)).sum())
+            assert not np.any(b["rgb"][out]) and not np.any(b["mask_visib"][out])
+            np.testing.assert_array_equal(b["rgb"][~out], a["rgb"][~out])
+            np.testing.assert_array_equal(b["mask_visib"][~out], a["mask_visib"][~out])
+    assert n_cut >= 2  # some crops do reach beyond the image
+
+
 def test_visible_boxes_frame_the_visible_part_of_occluded_targets(models):
     """box_source="visible": an occluded target's crop is cut from its visible box, so its visible
     pixels span S / pad along the longer side, centred, as a crop cut from a ground truth's

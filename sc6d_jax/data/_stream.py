@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from sc6d_jax.data._augment import camera_effects, colour_augment, random_background
-from sc6d_jax.data._scene import hull_vertices, random_rotation, sample_pose
+from sc6d_jax.data._scene import IMAGE_H, IMAGE_W, hull_vertices, random_rotation, sample_pose
 
 #: Resample a crop whose visible mask is below either bound (authors' code).
 MIN_VISIBLE_PX = 50
@@ -111,6 +111,10 @@ class StreamConfig:
             0 = off.
         These six default to off (the streams of earlier runs are unchanged); they are the
         stream's realism options for real test images (LM-O).
+        image_border: the crop's pixels that lie outside the 640x480 image its pose was drawn in
+            are black (after the colour augmentation) and not part of the visible mask, as in a
+            crop cut from a real image (``sc6d_jax.geometry.warp_crop`` pads with zeros); False =
+            the whole crop is rendered, beyond the image's edges too.
         max_faces: render meshes with more faces than this simplified to about this many
             (``sc6d_jax.render.simplify_mesh``; 0 = the full meshes). 5,000 faces render the
             LM-O models 3.5x faster at 64x64 with silhouettes 99 % the same (IoU); the labels
@@ -142,6 +146,7 @@ class StreamConfig:
     max_faces: int = 0
     object_gain: tuple[float, float] | None = None
     scene_backgrounds: float = 0.0
+    image_border: bool = False
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.scene_backgrounds <= 1.0:
@@ -185,6 +190,18 @@ def positive_range(value, name: str) -> tuple[float, float]:
     if len(g) != 2 or not 0.0 < g[0] <= g[1]:
         raise ValueError(f"{name} must be (low, high) with 0 < low <= high, got {value!r}")
     return g
+
+
+def inside_image(T: np.ndarray, S: int, width: int = IMAGE_W, height: int = IMAGE_H) -> np.ndarray:
+    """(..., S, S) bool: which pixels of crops with transforms ``T`` (..., 3, 3) (image -> crop,
+    affine) come from inside a ``width`` x ``height`` image: their centres map to within half a
+    pixel of its pixel centres, where a bilinear warp with a zero border still reads the image."""
+    Ti = np.linalg.inv(np.asarray(T, np.float64))
+    s = np.arange(S, dtype=np.float64)
+    u, v = np.meshgrid(s, s)  # u: column, v: row
+    x = Ti[..., 0, 0, None, None] * u + Ti[..., 0, 1, None, None] * v + Ti[..., 0, 2, None, None]
+    y = Ti[..., 1, 0, None, None] * u + Ti[..., 1, 1, None, None] * v + Ti[..., 1, 2, None, None]
+    return (x >= -0.5) & (x <= width - 0.5) & (y >= -0.5) & (y <= height - 0.5)
 
 
 def derive_seed(seed: int, tag: int) -> int:
@@ -440,6 +457,8 @@ class _Worker:
             K_B = T @ p.K
         out = self.renderer.render(objects, K_B, primitives=prims, background=background, depth=cfg.dense)
         mask = out.mask_visib[0]
+        if cfg.image_border:  # the target is not seen beyond the image's edges
+            mask = mask & inside_image(T, S)
         n_vis = int(mask.sum())
         if n_vis < MIN_VISIBLE_PX or n_vis < MIN_VISIBLE_FRACTION * S * S:
             return None
@@ -487,9 +506,14 @@ class _Worker:
             dense, dense_w = dense_targets(
                 np.stack(depths), mask, T @ K, R, R_allo, t, np.array([self.diameters[p.obj_id] for p in poses])
             )
+        outside = ~inside_image(T, S) if cfg.image_border else None
+        if outside is not None and not cfg.augment:
+            rgb[outside] = 0
         if cfg.augment:
             for j in range(B):
                 rgb[j] = colour_augment(rngs[j], rgb[j])
+                if outside is not None:  # black as a crop cut from an image is, after any colour change
+                    rgb[j][outside[j]] = 0
                 k = int(rngs[j].integers(4))
                 if k:  # turn the crop by k*90 deg clockwise == Rz(+90k) about the optical axis
                     rgb[j] = np.rot90(rgb[j], -k)

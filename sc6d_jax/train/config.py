@@ -63,6 +63,9 @@ class StreamSettings:
             full setting (``sc6d_jax.data.StreamConfig.curriculum``; 0 = full from the start).
         curriculum_fraction: the same as a fraction of the run's steps (the larger of the two
             applies), so that ``--steps N`` keeps the schedule's shape at any N.
+        image_border: black out the crop's pixels beyond the image's edges, as a crop cut from
+            an image is (``sc6d_jax.data.StreamConfig.image_border``); the validation crops do
+            not, so runs with and without it are scored on the same crops.
         materials, resample, sensor, distractors, object_gain, scene_backgrounds: the stream's
             realism options for real test images (``sc6d_jax.data.StreamConfig``; off by
             default). The validation crops never use them, so runs with and without them are
@@ -101,6 +104,7 @@ class StreamSettings:
     box_source: str | None = None
     object_gain: tuple[float, float] | None = None
     scene_backgrounds: float = 0.0
+    image_border: bool = False
 
     #: fields whose ``None`` leaves the crop stream's own default in place
     STREAM_DEFAULTED = ("occlusion", "distance", "placement", "box_shift", "box_scale", "box_source")
