@@ -509,6 +509,8 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # 2.0 %: not kept (obj1_placement*).
         # The crop's angular size given to the depth head (model.z_scale_input; obj 1, 6,000 steps):
         # test AR 0.645 vs 0.646 without TTA, 0.681 vs 0.676 fused: the same, not kept (obj1_scale*).
+        # Crops black beyond the image's edges as test crops are (stream.image_border; obj 1, 6,000
+        # steps): test AR 0.644 vs 0.646, 0.681 vs 0.676 fused: the same, not kept (obj1_border*).
         # 26,000 steps: about an hour on 2 cores with one renderer worker. The "long" preset is
         # the same recipe over 150,000 steps, run in legs (sc6d carry); the shipped builtin was
         # trained with the earlier 5,000 + 256 negatives (8.6 hours).
