@@ -76,7 +76,8 @@ class StreamConfig:
         distance: camera distance range in object diameters.
         placement: (low, high): the target's centre projects to (u, v) drawn uniformly in this
             range of fractions of the image's width and height; the default (0.15, 0.85) keeps
-            it about 20 degrees or less off the optical axis, (0.05, 0.95) reaches about 30.
+            it within about 20 degrees of the optical axis (25 in the corners), (0.05, 0.95)
+            within about 25 (30-35 in the corners).
         background: "textured" (procedural patterns) or "plain" (one random colour per crop):
             plain backgrounds and no occlusion make a much easier task for tiny smoke runs.
         dense: also render depth and return dense geometric targets of the target's visible
@@ -153,10 +154,7 @@ class StreamConfig:
             raise ValueError(f"scene_backgrounds must be a probability in [0, 1], got {self.scene_backgrounds!r}")
         if self.object_gain is not None:
             object.__setattr__(self, "object_gain", positive_range(self.object_gain, "object_gain"))
-        pl = tuple(float(x) for x in self.placement) if np.ndim(self.placement) == 1 else ()
-        if len(pl) != 2 or not 0.0 <= pl[0] <= pl[1] <= 1.0:
-            raise ValueError(f"placement must be (low, high) with 0 <= low <= high <= 1, got {self.placement!r}")
-        object.__setattr__(self, "placement", pl)
+        object.__setattr__(self, "placement", unit_range(self.placement, "placement"))
         if self.background not in ("textured", "plain"):
             raise ValueError(f"background must be 'textured' or 'plain', got {self.background!r}")
         if self.box_source not in ("amodal", "visible"):
@@ -189,6 +187,17 @@ def positive_range(value, name: str) -> tuple[float, float]:
         g = ()
     if len(g) != 2 or not 0.0 < g[0] <= g[1]:
         raise ValueError(f"{name} must be (low, high) with 0 < low <= high, got {value!r}")
+    return g
+
+
+def unit_range(value, name: str) -> tuple[float, float]:
+    """``value`` as a ``(low, high)`` float pair with 0 <= low <= high <= 1 (ValueError naming ``name``)."""
+    try:
+        g = tuple(float(x) for x in value)
+    except (TypeError, ValueError):
+        g = ()
+    if len(g) != 2 or not 0.0 <= g[0] <= g[1] <= 1.0:
+        raise ValueError(f"{name} must be (low, high) with 0 <= low <= high <= 1, got {value!r}")
     return g
 
 

@@ -127,10 +127,9 @@ class StreamSettings:
 
             object.__setattr__(self, "object_gain", positive_range(self.object_gain, "stream.object_gain"))
         if self.placement is not None:
-            pl = tuple(float(x) for x in self.placement)
-            if len(pl) != 2 or not 0.0 <= pl[0] <= pl[1] <= 1.0:
-                raise ValueError(f"stream.placement must be (low, high) with 0 <= low <= high <= 1, got {self.placement!r}")
-            object.__setattr__(self, "placement", pl)
+            from sc6d_jax.data._stream import unit_range
+
+            object.__setattr__(self, "placement", unit_range(self.placement, "stream.placement"))
         if self.box_scale is not None:
             b = tuple(float(x) for x in self.box_scale)
             if len(b) != 2 or not 0.0 < b[0] <= b[1]:
