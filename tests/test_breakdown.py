@@ -224,10 +224,36 @@ def test_summarize_breakdown_medians_and_fractions():
     assert "per_ray_angle" not in summarize_breakdown([{**per[0], "ray_deg": 3.0}, per[1]])  # not every target
     with pytest.raises(ValueError, match="ray_deg"):
         summarize_breakdown([{**per[0], "ray_deg": -1.0}])
+    # and by the extent across the view when every target has one
+    se = summarize_breakdown([{**d, "depth_signed": g, "extent": e}
+                              for d, g, e in zip(per, signed, [0.5, 0.8, 0.95, 1.0, 0.74])])
+    assert list(se["per_extent"]) == ["<0.75", "0.75-0.9", ">=0.9"]
+    assert [se["per_extent"][k]["n"] for k in se["per_extent"]] == [2, 1, 2]
+    assert se["per_extent"][">=0.9"]["depth_bias_median"] == pytest.approx(0.04)
+    with pytest.raises(ValueError, match="extent"):
+        summarize_breakdown([{**per[0], "extent": 0.0}])
     with pytest.raises(ValueError, match=r"per_target\[0\] has no 'centre_px'"):
         summarize_breakdown([{"obj_id": 1, "rot_deg": 1.0, "depth_rel": 0.1}])
     with pytest.raises(ValueError, match="non-negative"):
         summarize_breakdown([{"obj_id": 1, "rot_deg": float("nan"), "depth_rel": 0.1, "centre_px": 1.0}])
+
+
+def test_extent_ratio_of_a_rod_across_and_along_the_view():
+    """A 100 x 10 x 10 mm rod 1 m away (f = 500): across the view its box spans its length
+    (ratio ~ 100 / diameter, a little more for the perspective of its near corners); end-on
+    only its near end's 10 mm, enlarged by being 5 cm nearer."""
+    from sc6d_jax.metrics._breakdown import extent_ratio
+
+    pts = np.array([[x, y, z] for x in (-50, 50) for y in (-5, 5) for z in (-5, 5)], float)
+    d = float(np.sqrt(100**2 + 10**2 + 10**2))
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    t = np.array([0.0, 0.0, 1000.0])
+    across = extent_ratio(pts, np.eye(3), t, K, d)
+    assert across == pytest.approx(2 * 50 * 1000 / 995 / d, rel=1e-9)
+    end_on = extent_ratio(pts, rot("y", 90.0), t, K, d)
+    assert end_on == pytest.approx(2 * 5 * 1000 / 950 / d, rel=1e-9)
+    with pytest.raises(ValueError, match="in front"):
+        extent_ratio(pts, np.eye(3), np.array([0.0, 0.0, 3.0]), K, d)
 
 
 # ----------------------------------------------------------------------------- sc6d eval
@@ -286,10 +312,13 @@ def test_eval_cli_breakdown_on_a_rendered_dataset(models, tmp_path, capsys):
     first = [d["depth_bias_median"] for d in s["breakdown"]["per_object"].values()]
     assert all(v is None or v == pytest.approx(0.0, abs=1e-6) or v == pytest.approx(0.06, abs=1e-6) or
                0.0 < v < 0.06 for v in first)
+    pe = s["breakdown"]["per_extent"]
+    assert set(pe) <= {"<0.75", "0.75-0.9", ">=0.9"} and sum(d["n"] for d in pe.values()) == n
     printed = capsys.readouterr().out
     assert "pose-error breakdown" in printed and "rot_med" in printed and "bias" in printed
     assert "by visible fraction of the target:" in printed
     assert "by angle of the target's ray from the optical axis:" in printed
+    assert "by the target's extent across the view" in printed
     # --oracle: one part of every pose from the ground truth; the other part's errors stay
     for part, rot_ok, depth_ok in (("rotation", n - 1, n - n_depth - 1), ("translation", n - n_rot - 1, n - 1)):
         o = tmp_path / f"oracle_{part}.json"

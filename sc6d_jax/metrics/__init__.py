@@ -35,10 +35,12 @@ from sc6d_jax.metrics._bop19 import (
     standard_error,
 )
 from sc6d_jax.metrics._breakdown import (
+    EXTENT_BINS,
     MISS,
     RAY_BINS,
     VISIBILITY_BINS,
     breakdown_errors,
+    extent_ratio,
     format_breakdown_line,
     pose_errors,
     rotation_error_deg,
@@ -70,6 +72,7 @@ __all__ = [
     "MSSD_THRESHOLDS",
     "ORACLE_PARTS",
     "RAY_BINS",
+    "EXTENT_BINS",
     "VISIBILITY_BINS",
     "VISIB_GT_MIN",
     "VSD_DELTA",
@@ -84,6 +87,7 @@ __all__ = [
     "adi",
     "average_time_per_image",
     "breakdown_errors",
+    "extent_ratio",
     "compute_errors",
     "depth_to_distance",
     "evaluate_bop19",

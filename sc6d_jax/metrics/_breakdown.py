@@ -11,8 +11,10 @@ three errors of the paired estimate:
 - ``depth_rel``: relative depth error ``|t_est_z - t_gt_z| / t_gt_z`` (0.05 = 5 %);
 - ``centre_px``: distance in pixels between the projections of the object origin ``t`` under
   ``K`` for the estimate and the ground truth;
-- next to them, ``depth_signed`` (``(t_est_z - t_gt_z) / t_gt_z``: positive = too far) and
-  ``ray_deg``, the angle between the ground truth's ray ``t_gt`` and the optical axis.
+- next to them, ``depth_signed`` (``(t_est_z - t_gt_z) / t_gt_z``: positive = too far),
+  ``ray_deg``, the angle between the ground truth's ray ``t_gt`` and the optical axis, and
+  ``extent`` (:func:`extent_ratio`): the object's extent across the view at the ground truth's
+  pose over its diameter, low when it is seen along its length (foreshortened).
 
 Pairing (:func:`breakdown_errors`): per target object of an image, the ``inst_count``
 highest-scoring estimates (the ones BOP19 evaluates) are taken in order of decreasing score
@@ -27,7 +29,9 @@ depth error (``depth_bias_median``, over the estimated targets), overall, per ob
 fraction of the target (:data:`VISIBILITY_BINS`: how the errors grow with occlusion) and per angle
 of the target's ray from the optical axis (:data:`RAY_BINS`: an off-axis object is seen stretched
 along its ray's direction, by up to ``1/cos`` of that angle, which a depth read off the crop's
-apparent size has to undo).
+apparent size has to undo) and per extent across the view (:data:`EXTENT_BINS`: with crops cut
+from exact boxes the depth code is that extent, which changes fastest with the rotation where
+the object is seen along its length).
 Everything here works on in-memory arrays; ``evaluate_images`` / ``evaluate_bop19`` store the
 summary under the key ``"breakdown"`` of their scores.
 """
@@ -67,6 +71,11 @@ RAY_BINS: tuple[tuple[str, float, float], ...] = (
     ("<10deg", 0.0, 10.0), ("10-20deg", 10.0, 20.0), (">=20deg", 20.0, math.inf),
 )
 """(label, low, high) in degrees of the ray-angle groups of :func:`summarize_breakdown`."""
+
+EXTENT_BINS: tuple[tuple[str, float, float], ...] = (
+    ("<0.75", 0.0, 0.75), ("0.75-0.9", 0.75, 0.9), (">=0.9", 0.9, math.inf),
+)
+"""(label, low, high) of the groups by :func:`extent_ratio` of :func:`summarize_breakdown`."""
 
 SUMMARY_KEYS: tuple[str, ...] = (
     "n", "missed", "rot_median_deg", "depth_rel_median", "centre_median_px",
@@ -154,6 +163,22 @@ def pose_errors(
             "depth_signed": float((t_e[2] - t_g[2]) / t_g[2]), "ray_deg": ray_angle_deg(t_g)}
 
 
+def extent_ratio(pts: Any, R: Any, t: Any, K: Any, diameter: float) -> float:
+    """The object's extent across the view over its diameter: the longer side of the box of its
+    points ``pts`` (N, 3) projected at pose (R, t) under ``K``, times ``t_z / f`` (back to mm at
+    the object's depth), over ``diameter``. About 1 when its longest axis lies across the view,
+    lower when it is seen along it (a rod end-on: its thickness over its length)."""
+    p = np.asarray(pts, dtype=np.float64) @ _rot(R, "R").T + _vec(t, "t")
+    K = _rot(K, "K")
+    if not np.all(p[:, 2] > 0):
+        raise ValueError("the object must lie in front of the camera")
+    uv = p @ K.T
+    uv = uv[:, :2] / uv[:, 2:3]
+    w, h = uv.max(0) - uv.min(0)
+    f = math.sqrt(K[0, 0] * K[1, 1])
+    return float(max(w, h) * float(_vec(t, "t")[2]) / (f * float(diameter)))
+
+
 def ray_angle_deg(t: Any) -> float:
     """Angle in degrees between the ray to ``t`` (3,) and the optical axis (z)."""
     t = np.asarray(t, dtype=np.float64).reshape(3)
@@ -186,7 +211,9 @@ def breakdown_errors(
         ``im_id``, ``obj_id``, ``gt_id`` (index in the image's ground truths), ``est_id`` (index
         among the estimates of (scene, image, object) in input order; None for a miss),
         ``score`` (None for a miss), ``missed`` (bool), ``rot_deg``, ``depth_rel``, ``centre_px``,
-        ``visib_fract`` (the ground truth's visible fraction).
+        ``visib_fract`` (the ground truth's visible fraction), ``depth_signed``, ``ray_deg`` and
+        ``extent`` (:func:`extent_ratio` at the ground truth's pose; None for an object without
+        a model, which has no estimate either).
     """
     groups = _group_estimates(estimates)
     sym_cache: dict[int, np.ndarray] = {}
@@ -218,8 +245,10 @@ def breakdown_errors(
                 continue
             rec = paired.get(gt_id, {"est_id": None, "score": None, "missed": True, **MISS,
                                      "ray_deg": ray_angle_deg(g.t)})
+            m = models.get(int(g.obj_id))
+            ext = None if m is None else extent_ratio(m.pts, g.R, g.t, K, m.diameter)
             out.append({"scene_id": img.scene_id, "im_id": img.im_id, "obj_id": int(g.obj_id), "gt_id": gt_id, **rec,
-                        "visib_fract": float(g.visib_fract)})
+                        "visib_fract": float(g.visib_fract), "extent": ext})
     return out
 
 
@@ -260,13 +289,13 @@ def summarize_breakdown(per_target: Sequence[Mapping[str, Any]]) -> dict[str, An
             ``centre_px`` [pixels] (e.g. from :func:`breakdown_errors`); an optional ``missed``
             (bool) is counted, an optional ``depth_signed`` [fraction] makes the depth bias.
             Misses should carry :data:`MISS` (180, inf, inf). When every target has a
-            ``visib_fract`` (a ``ray_deg``), the summary is also grouped by it.
+            ``visib_fract`` (a ``ray_deg``, an ``extent``), the summary is also grouped by it.
 
     Returns:
         ``{"overall": S, "per_object": {obj_id: S}, "per_visibility": {label: S},
-        "per_ray_angle": {label: S}}`` (objects sorted by id; the groups of :data:`VISIBILITY_BINS`
-        and :data:`RAY_BINS` that hold targets, in their order; ``per_visibility`` only when every
-        target has a ``visib_fract``, ``per_ray_angle`` only when every target has a ``ray_deg``),
+        "per_ray_angle": {label: S}, "per_extent": {label: S}}`` (objects sorted by id; the groups
+        of :data:`VISIBILITY_BINS`, :data:`RAY_BINS` and :data:`EXTENT_BINS` that hold targets, in
+        their order; each grouping only when every target has its value),
         each ``S`` with ``n`` (targets), ``missed``, ``rot_median_deg``, ``depth_rel_median``
         (fraction, 0.05 = 5 %), ``centre_median_px`` (medians; inf when more than half are
         misses), ``rot_under_5`` / ``_10`` / ``_20`` (degrees), ``depth_under_2pct`` / ``_5pct``
@@ -282,6 +311,7 @@ def summarize_breakdown(per_target: Sequence[Mapping[str, Any]]) -> dict[str, An
     vis: list[float] = []
     signed: list[float] = []
     ray: list[float] = []
+    ext: list[float] = []
     for i, d in enumerate(per_target):
         if not isinstance(d, Mapping):
             raise ValueError(f"per_target[{i}] must be a dict, got {type(d).__name__}")
@@ -307,6 +337,11 @@ def summarize_breakdown(per_target: Sequence[Mapping[str, Any]]) -> dict[str, An
             if not 0.0 <= v <= 180.0:
                 raise ValueError(f"per_target[{i}]['ray_deg'] must be in [0, 180], got {d['ray_deg']!r}")
             ray.append(v)
+        if d.get("extent") is not None:
+            v = float(d["extent"])
+            if not v > 0.0:
+                raise ValueError(f"per_target[{i}]['extent'] must be a positive number, got {d['extent']!r}")
+            ext.append(v)
     o = np.asarray(obj, dtype=np.int64)
     sg = np.asarray(signed, dtype=np.float64)
     rot, depth, centre = (np.asarray(c, dtype=np.float64) for c in cols)
@@ -316,7 +351,8 @@ def summarize_breakdown(per_target: Sequence[Mapping[str, Any]]) -> dict[str, An
         sel = o == oid
         per_object[oid] = _summary(rot[sel], depth[sel], centre[sel], int(m[sel].sum()), sg[sel])
     out = {"overall": _summary(rot, depth, centre, int(m.sum()), sg), "per_object": per_object}
-    for key, vals, bins in (("per_visibility", vis, VISIBILITY_BINS), ("per_ray_angle", ray, RAY_BINS)):
+    for key, vals, bins in (("per_visibility", vis, VISIBILITY_BINS), ("per_ray_angle", ray, RAY_BINS),
+                            ("per_extent", ext, EXTENT_BINS)):
         if vals and len(vals) == len(obj):
             v = np.asarray(vals)
             out[key] = {

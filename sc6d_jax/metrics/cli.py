@@ -105,7 +105,8 @@ def format_breakdown_table(breakdown: dict[str, Any]) -> str:
         lines.append(row(str(obj_id), d))
     lines.append(row("all", breakdown["overall"]))
     for key, title in (("per_visibility", "by visible fraction of the target:"),
-                       ("per_ray_angle", "by angle of the target's ray from the optical axis:")):
+                       ("per_ray_angle", "by angle of the target's ray from the optical axis:"),
+                       ("per_extent", "by the target's extent across the view over its diameter (low: seen along its length):")):
         if breakdown.get(key):
             lines.append(title)
             for label, d in breakdown[key].items():
@@ -134,7 +135,7 @@ def _jsonable(scores: dict[str, Any]) -> dict[str, Any]:
         bd = scores["breakdown"]
         out["breakdown"] = _finite_or_none(
             {"overall": bd["overall"], "per_object": {str(k): v for k, v in bd["per_object"].items()},
-             **{k: bd[k] for k in ("per_visibility", "per_ray_angle") if k in bd}}
+             **{k: bd[k] for k in ("per_visibility", "per_ray_angle", "per_extent") if k in bd}}
         )
     return out
 
