@@ -179,12 +179,17 @@ class StreamConfig:
             raise ValueError(f"max_faces must be 0 (full meshes) or an integer >= 4, got {self.max_faces!r}")
 
 
+def _float_pair(value) -> tuple[float, ...]:
+    """``value`` as a tuple of floats; () when it is not a sequence of numbers."""
+    try:
+        return tuple(float(x) for x in value)
+    except (TypeError, ValueError):
+        return ()
+
+
 def positive_range(value, name: str) -> tuple[float, float]:
     """``value`` as a ``(low, high)`` float pair with 0 < low <= high (ValueError naming ``name``)."""
-    try:
-        g = tuple(float(x) for x in value)
-    except (TypeError, ValueError):
-        g = ()
+    g = _float_pair(value)
     if len(g) != 2 or not 0.0 < g[0] <= g[1]:
         raise ValueError(f"{name} must be (low, high) with 0 < low <= high, got {value!r}")
     return g
@@ -192,10 +197,7 @@ def positive_range(value, name: str) -> tuple[float, float]:
 
 def unit_range(value, name: str) -> tuple[float, float]:
     """``value`` as a ``(low, high)`` float pair with 0 <= low <= high <= 1 (ValueError naming ``name``)."""
-    try:
-        g = tuple(float(x) for x in value)
-    except (TypeError, ValueError):
-        g = ()
+    g = _float_pair(value)
     if len(g) != 2 or not 0.0 <= g[0] <= g[1] <= 1.0:
         raise ValueError(f"{name} must be (low, high) with 0 <= low <= high <= 1, got {value!r}")
     return g

@@ -77,6 +77,14 @@ EXTENT_BINS: tuple[tuple[str, float, float], ...] = (
 )
 """(label, low, high) of the groups by :func:`extent_ratio` of :func:`summarize_breakdown`."""
 
+#: The groupings of :func:`summarize_breakdown`: (summary key, per-target value, its bins, its
+#: valid range as a test, the range in words), in the order they are reported.
+GROUPINGS: tuple[tuple[str, str, tuple[tuple[str, float, float], ...], Any, str], ...] = (
+    ("per_visibility", "visib_fract", VISIBILITY_BINS, lambda v: 0.0 <= v <= 1.0, "in [0, 1]"),
+    ("per_ray_angle", "ray_deg", RAY_BINS, lambda v: 0.0 <= v <= 180.0, "in [0, 180]"),
+    ("per_extent", "extent", EXTENT_BINS, lambda v: v > 0.0, "a positive number"),
+)
+
 SUMMARY_KEYS: tuple[str, ...] = (
     "n", "missed", "rot_median_deg", "depth_rel_median", "centre_median_px",
     "rot_under_5", "rot_under_10", "rot_under_20", "rot_over_90", "depth_under_2pct", "depth_under_5pct",
@@ -308,10 +316,8 @@ def summarize_breakdown(per_target: Sequence[Mapping[str, Any]]) -> dict[str, An
     obj: list[int] = []
     cols: list[list[float]] = [[], [], []]
     missed: list[bool] = []
-    vis: list[float] = []
     signed: list[float] = []
-    ray: list[float] = []
-    ext: list[float] = []
+    grouped: list[list[float]] = [[] for _ in GROUPINGS]
     for i, d in enumerate(per_target):
         if not isinstance(d, Mapping):
             raise ValueError(f"per_target[{i}] must be a dict, got {type(d).__name__}")
@@ -325,23 +331,14 @@ def summarize_breakdown(per_target: Sequence[Mapping[str, Any]]) -> dict[str, An
                 raise ValueError(f"per_target[{i}][{k!r}] must be a non-negative number (inf allowed), got {d[k]!r}")
             c.append(v)
         missed.append(bool(d.get("missed", False)))
-        if d.get("visib_fract") is not None:
-            v = float(d["visib_fract"])
-            if not 0.0 <= v <= 1.0:
-                raise ValueError(f"per_target[{i}]['visib_fract'] must be in [0, 1], got {d['visib_fract']!r}")
-            vis.append(v)
         sd = d.get("depth_signed")
         signed.append(math.nan if sd is None else float(sd))
-        if d.get("ray_deg") is not None:
-            v = float(d["ray_deg"])
-            if not 0.0 <= v <= 180.0:
-                raise ValueError(f"per_target[{i}]['ray_deg'] must be in [0, 180], got {d['ray_deg']!r}")
-            ray.append(v)
-        if d.get("extent") is not None:
-            v = float(d["extent"])
-            if not v > 0.0:
-                raise ValueError(f"per_target[{i}]['extent'] must be a positive number, got {d['extent']!r}")
-            ext.append(v)
+        for vals, (_, k, _, valid, what) in zip(grouped, GROUPINGS):
+            if d.get(k) is not None:
+                v = float(d[k])
+                if not valid(v):
+                    raise ValueError(f"per_target[{i}][{k!r}] must be {what}, got {d[k]!r}")
+                vals.append(v)
     o = np.asarray(obj, dtype=np.int64)
     sg = np.asarray(signed, dtype=np.float64)
     rot, depth, centre = (np.asarray(c, dtype=np.float64) for c in cols)
@@ -351,8 +348,7 @@ def summarize_breakdown(per_target: Sequence[Mapping[str, Any]]) -> dict[str, An
         sel = o == oid
         per_object[oid] = _summary(rot[sel], depth[sel], centre[sel], int(m[sel].sum()), sg[sel])
     out = {"overall": _summary(rot, depth, centre, int(m.sum()), sg), "per_object": per_object}
-    for key, vals, bins in (("per_visibility", vis, VISIBILITY_BINS), ("per_ray_angle", ray, RAY_BINS),
-                            ("per_extent", ext, EXTENT_BINS)):
+    for vals, (key, _, bins, _, _) in zip(grouped, GROUPINGS):
         if vals and len(vals) == len(obj):
             v = np.asarray(vals)
             out[key] = {

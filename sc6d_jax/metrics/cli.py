@@ -31,6 +31,7 @@ from typing import Any
 
 from sc6d_jax._io import atomic_write_json
 from sc6d_jax.metrics._oracle import ORACLE_PARTS, with_ground_truth
+from sc6d_jax.metrics._breakdown import GROUPINGS
 
 
 def _fmt(v: Any) -> str:
@@ -104,9 +105,11 @@ def format_breakdown_table(breakdown: dict[str, Any]) -> str:
     for obj_id, d in breakdown["per_object"].items():
         lines.append(row(str(obj_id), d))
     lines.append(row("all", breakdown["overall"]))
-    for key, title in (("per_visibility", "by visible fraction of the target:"),
-                       ("per_ray_angle", "by angle of the target's ray from the optical axis:"),
-                       ("per_extent", "by the target's extent across the view over its diameter (low: seen along its length):")):
+    titles = {"per_visibility": "by visible fraction of the target:",
+              "per_ray_angle": "by angle of the target's ray from the optical axis:",
+              "per_extent": "by the target's extent across the view over its diameter (low: seen along its length):"}
+    for key, *_ in GROUPINGS:
+        title = titles[key]
         if breakdown.get(key):
             lines.append(title)
             for label, d in breakdown[key].items():
@@ -135,7 +138,7 @@ def _jsonable(scores: dict[str, Any]) -> dict[str, Any]:
         bd = scores["breakdown"]
         out["breakdown"] = _finite_or_none(
             {"overall": bd["overall"], "per_object": {str(k): v for k, v in bd["per_object"].items()},
-             **{k: bd[k] for k in ("per_visibility", "per_ray_angle", "per_extent") if k in bd}}
+             **{k: bd[k] for k, *_ in GROUPINGS if k in bd}}
         )
     return out
 
