@@ -161,8 +161,14 @@ def plot(rows: list[dict], path: Path, marks: list[tuple[float, str]] = (), x_ax
         ax.set_xlabel("training steps" if steps else f"training {'hours' if hours else 'minutes'} (2 CPU cores)")
         ax.set_title(t)
         ax.grid(alpha=0.3)
-    axes[1].set_yscale("log")
-    axes[2].set_yscale("log")
+    from matplotlib.ticker import FuncFormatter, LogLocator
+
+    for ax in axes[1:]:  # log scales, ticked in plain numbers (1, 1.5, 2, 3, 5, 7, 10, ...)
+        ax.set_yscale("log")
+        ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 1.5, 2.0, 3.0, 5.0, 7.0)))
+        ax.yaxis.set_minor_locator(LogLocator(subs="all"))
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.yaxis.set_minor_formatter(FuncFormatter(lambda v, _: ""))
     axes[0].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
