@@ -9,6 +9,7 @@ import trimesh
 
 from sc6d_jax.data import CropStream, StreamConfig
 from sc6d_jax.data._augment import camera_effects
+from sc6d_jax.data._stream import object_contrast
 from sc6d_jax.render import Light, Renderer
 from sc6d_jax.train import DataFns, preset, train
 from sc6d_jax.train.cli import apply_overrides
@@ -124,6 +125,43 @@ def test_object_gain_scales_the_objects_and_keeps_the_background(models):
         apply_overrides(preset("tiny"), ["stream.object_gain=0,2"])
 
 
+def test_object_contrast_spreads_each_object_about_its_mean(models):
+    """Plain backgrounds, no occluders or augmentation: with object_contrast the background and the
+    labels are those of the stream without it, each crop's object keeps its mean colour, and its
+    pixels' spread about that mean grows or shrinks by one factor (within the range, both ways)."""
+    kw = dict(crop_size=48, batch_size=12, workers=0, obj_ids=(1, 5, 8), seed=5, augment=False,
+              background="plain", occlusion=0.0)
+    with CropStream(StreamConfig(str(models), **kw)) as s:
+        base = s.batch(0)
+    with CropStream(StreamConfig(str(models), object_contrast=(0.5, 2.0), **kw)) as s:
+        spread = s.batch(0)
+    for k in ("R", "t", "K", "delta_z", "obj_id", "mask_visib"):
+        np.testing.assert_array_equal(spread[k], base[k])
+    factors = []
+    for a, b, m in zip(base["rgb"], spread["rgb"], base["mask_visib"]):
+        np.testing.assert_array_equal(b[m == 0], a[m == 0])  # the background is untouched
+        x, y = a[m > 0].astype(np.float64), b[m > 0].astype(np.float64)
+        if (y > 250).mean() + (y < 5).mean() > 0.02:
+            continue  # clipped: the spread is no longer one factor
+        np.testing.assert_allclose(y.mean(0), x.mean(0), atol=1.0)  # the mean colour stays
+        factors.append(np.linalg.norm(y - y.mean(0)) / np.linalg.norm(x - x.mean(0)))
+    factors = np.array(factors)
+    assert len(factors) >= 6
+    assert np.all((factors > 0.48) & (factors < 2.05))
+    assert factors.min() < 0.85 and factors.max() > 1.2  # a factor per crop, both ways
+    img = np.full((4, 4, 3), 100, np.uint8)
+    img[0, :2] = 200  # instance 0: two bright pixels and two dark ones, mean 150
+    inst = np.full((4, 4), -1, np.int32)
+    inst[0] = 0
+    out = object_contrast(np.random.default_rng(0), img, inst, (2.0, 2.0))
+    np.testing.assert_array_equal(out[0], [[250] * 3, [250] * 3, [50] * 3, [50] * 3])
+    np.testing.assert_array_equal(out[1:], img[1:])  # the background (-1) is untouched
+    with pytest.raises(ValueError, match="object_contrast"):
+        StreamConfig(str(models), object_contrast=(2.0, 1.0))
+    with pytest.raises(ValueError, match="object_contrast"):
+        apply_overrides(preset("tiny"), ["stream.object_contrast=0,2"])
+
+
 def test_scene_backgrounds_are_windows_of_rendered_clutter(models):
     """scene_backgrounds=1: every crop's background is an S x S window (maybe mirrored) of one of
     the worker's rendered clutter scenes, which are a pure function of the seed and show the
@@ -185,14 +223,16 @@ def test_realism_options_reach_the_stream_from_the_config(models, tmp_path):
     cfg = apply_overrides(preset("tiny"), ["stream.sensor=true", "stream.distractors=2", "stream.materials=true",
                                            "stream.resample=true", "stream.box_shift=0", "stream.box_scale=0.9,1.1",
                                            "stream.box_source=visible", "stream.object_gain=0.5,2",
+                                           "stream.object_contrast=0.7,1.5",
                                            "stream.scene_backgrounds=0.5", "steps=2", "val_crops=0"])
     with pytest.raises(Stop):
         train(cfg, models, tmp_path / "a", workers=0, progress=False, verbose=False, data_fns=fns)
     keys = ("sensor", "distractors", "materials", "resample", "box_shift", "box_scale", "box_source", "object_gain",
-            "scene_backgrounds")
+            "object_contrast", "scene_backgrounds")
     assert {k: seen[-1].get(k) for k in keys} == {"sensor": True, "distractors": 2, "materials": True, "resample": True,
                                                   "box_shift": 0.0, "box_scale": (0.9, 1.1), "box_source": "visible",
-                                                  "object_gain": (0.5, 2.0), "scene_backgrounds": 0.5}
+                                                  "object_gain": (0.5, 2.0), "object_contrast": (0.7, 1.5),
+                                                  "scene_backgrounds": 0.5}
     with pytest.raises(Stop):
         train(apply_overrides(preset("tiny", steps=2, val_crops=0), ["stream.box_shift=none", "stream.box_scale=none"]),
               models, tmp_path / "b", workers=0, progress=False, verbose=False, data_fns=fns)

@@ -287,6 +287,36 @@ def test_workers_return_images_through_shared_memory(models, monkeypatch):
         np.testing.assert_array_equal(w["pe"], g["pe"])
 
 
+def test_a_dead_worker_is_replaced_and_the_stream_goes_on(models, capsys):
+    """A render worker killed mid-stream (as a segfault in the GL driver ends one) costs nothing
+    but time: the pool is restarted, the batches in flight are rendered again, and the stream's
+    batches are those of an undisturbed one. A worker that keeps dying ends the stream with an
+    error naming it."""
+    import os
+    import signal
+
+    from sc6d_jax.data import _stream
+
+    cfg = StreamConfig(str(models), crop_size=32, batch_size=2, workers=1, seed=4)
+    with CropStream(StreamConfig(str(models), crop_size=32, batch_size=2, workers=0, seed=4)) as s:
+        want = [next(s) for _ in range(4)]
+    with CropStream(cfg) as s:
+        got = [next(s)]
+        for pid in list(s._pool._processes):
+            os.kill(pid, signal.SIGKILL)
+        got += [next(s) for _ in range(3)]
+        assert s._restarts == 0
+        assert "a render worker died at batch 1" in capsys.readouterr().err
+        for w, g in zip(want, got):
+            for k in w:
+                np.testing.assert_array_equal(w[k], g[k])
+        s._restarts = _stream.MAX_WORKER_RESTARTS  # as if it had died that often already
+        for pid in list(s._pool._processes):
+            os.kill(pid, signal.SIGKILL)
+        with pytest.raises(RuntimeError, match="render workers died 4 times in a row at batch 4"):
+            next(s)
+
+
 def test_workers_end_with_a_killed_parent(models, tmp_path):
     """A training process killed with SIGKILL leaves no workers and no shared memory behind."""
     import os

@@ -15,6 +15,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import multiprocessing as mp
 import os
+import sys
 import threading
 import time
 from collections import deque
@@ -40,6 +41,8 @@ BACKGROUND_BANK = 256
 SCENE_BANK = 128
 #: Scheduling priority the worker processes lower themselves by (os.nice).
 WORKER_NICENESS = 10
+#: times in a row the stream restarts its render workers after one died (CropStream)
+MAX_WORKER_RESTARTS = 3
 
 
 @dataclass(frozen=True)
@@ -105,12 +108,17 @@ class StreamConfig:
             augmentation; the background keeps its brightness. A model's colours are known only
             up to the exposure of its scan and of the test camera; without it the rendered objects
             sit at one brightness relative to their surroundings. None = off.
+        object_contrast: (low, high): each drawn object's and occluder's pixels spread about
+            their own mean colour by a factor log-uniform in [low, high], drawn per object and
+            crop, after ``object_gain``. A scan's vertex colours carry the light of its capture,
+            and a photograph adds the test scene's: how strongly an object is shaded relative to
+            its rendering is not known. None = off.
         scene_backgrounds: the probability that a crop's textured background is a window of a
             rendered tabletop clutter scene (``sc6d_jax.data._clutter``: a table with the models
             and primitive shapes on it, under random lights) instead of a procedural pattern;
             a bank of SCENE_BANK scenes is rendered once per worker (at twice the crop size).
             0 = off.
-        These six default to off (the streams of earlier runs are unchanged); they are the
+        These seven default to off (the streams of earlier runs are unchanged); they are the
         stream's realism options for real test images (LM-O).
         image_border: the crop's pixels that lie outside the 640x480 image its pose was drawn in
             are black (after the colour augmentation) and not part of the visible mask, as in a
@@ -146,14 +154,16 @@ class StreamConfig:
     distractors: int = 0
     max_faces: int = 0
     object_gain: tuple[float, float] | None = None
+    object_contrast: tuple[float, float] | None = None
     scene_backgrounds: float = 0.0
     image_border: bool = False
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.scene_backgrounds <= 1.0:
             raise ValueError(f"scene_backgrounds must be a probability in [0, 1], got {self.scene_backgrounds!r}")
-        if self.object_gain is not None:
-            object.__setattr__(self, "object_gain", positive_range(self.object_gain, "object_gain"))
+        for name in ("object_gain", "object_contrast"):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, positive_range(getattr(self, name), name))
         object.__setattr__(self, "placement", unit_range(self.placement, "placement"))
         if self.background not in ("textured", "plain"):
             raise ValueError(f"background must be 'textured' or 'plain', got {self.background!r}")
@@ -185,6 +195,19 @@ def _float_pair(value) -> tuple[float, ...]:
         return tuple(float(x) for x in value)
     except (TypeError, ValueError):
         return ()
+
+
+def object_contrast(rng: np.random.Generator, rgb: np.ndarray, instance: np.ndarray,
+                    span: tuple[float, float]) -> np.ndarray:
+    """``rgb`` with each instance's pixels (``instance == k``, k >= 0) spread about their mean
+    colour by its own factor, log-uniform in ``span`` (drawn in the order of the instance ids)."""
+    x = rgb.astype(np.float32)
+    lo, hi = np.log(span[0]), np.log(span[1])
+    for k in np.unique(instance[instance >= 0]):
+        m = instance == k
+        mu = x[m].mean(axis=0)
+        x[m] = (x[m] - mu) * float(np.exp(rng.uniform(lo, hi))) + mu
+    return np.clip(x + 0.5, 0, 255).astype(np.uint8)
 
 
 def positive_range(value, name: str) -> tuple[float, float]:
@@ -480,6 +503,8 @@ class _Worker:
             fg = out.instance >= 0
             rgb = rgb.copy()
             rgb[fg] = np.clip(rgb[fg].astype(np.float32) * gain + 0.5, 0, 255).astype(np.uint8)
+        if cfg.object_contrast is not None:  # each object's shading contrast, about its mean colour
+            rgb = object_contrast(rng, rgb, out.instance, cfg.object_contrast)
         if cfg.resample or cfg.sensor:
             rgb = camera_effects(rng, rgb, side, resample=cfg.resample, sensor=cfg.sensor)
         return rgb, mask, out.depth, center, side, T
@@ -667,11 +692,33 @@ class CropStream:
             # pipe when the shared memory is too small for the ring
             n = 2 * cfg.workers + 1
             self._ring = _Ring(cfg, n) if _Ring.fits(cfg, n) else None
-            ring = None if self._ring is None else (self._ring.shm.name, n)
-            ctx = mp.get_context("spawn")
-            self._pool = cf.ProcessPoolExecutor(
-                cfg.workers, mp_context=ctx, initializer=_init_worker, initargs=(cfg, ring)
-            )
+            self._restarts = 0  # worker-pool restarts since the last batch that arrived
+            self._start_pool()
+
+    def _start_pool(self) -> None:
+        ring = None if self._ring is None else (self._ring.shm.name, self._ring.n)
+        self._pool = cf.ProcessPoolExecutor(
+            self.cfg.workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
+            initargs=(self.cfg, ring),
+        )
+
+    def _restart_pool(self, err: BaseException) -> None:
+        """A worker died (a crash in the renderer or the GL driver, or a kill): start a fresh pool
+        and render the batches in flight again. Batch b is a pure function of (seed, b), so the
+        stream goes on exactly as it would have; a worker that dies again before any batch
+        arrives, MAX_WORKER_RESTARTS times, ends the stream with the error."""
+        self._restarts += 1
+        if self._restarts > MAX_WORKER_RESTARTS:
+            raise RuntimeError(
+                f"crop stream: the render workers died {MAX_WORKER_RESTARTS + 1} times in a row at batch "
+                f"{self._next} ({err})") from err
+        print(f"crop stream: a render worker died at batch {self._next} ({err}); restarting the workers "
+              f"({self._restarts}/{MAX_WORKER_RESTARTS}) and rendering the batches in flight again",
+              file=sys.stderr, flush=True)
+        assert self._pool is not None
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        self._pending.clear()
+        self._start_pool()
 
     def batch(self, b: int) -> dict[str, np.ndarray]:
         """Batch ``b`` computed now (in this process or one worker), independent of the iterator."""
@@ -696,7 +743,12 @@ class CropStream:
                 self._pending.append(self._pool.submit(_render_batch, b))
             else:
                 self._pending.append(self._pool.submit(_render_batch_to_slot, b, b % ring.n))
-        out = self._pending.popleft().result()
+        try:
+            out = self._pending.popleft().result()
+        except cf.process.BrokenProcessPool as err:
+            self._restart_pool(err)
+            return self.__next__()
+        self._restarts = 0
         if ring is not None:
             # the in-flight batches are consecutive, so slot next % n is not written again
             # before the next call (n = in flight + 1); the arrays are copied out of it here

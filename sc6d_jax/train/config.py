@@ -66,7 +66,8 @@ class StreamSettings:
         image_border: black out the crop's pixels beyond the image's edges, as a crop cut from
             an image is (``sc6d_jax.data.StreamConfig.image_border``); the validation crops do
             not, so runs with and without it are scored on the same crops.
-        materials, resample, sensor, distractors, object_gain, scene_backgrounds: the stream's
+        materials, resample, sensor, distractors, object_gain, object_contrast,
+            scene_backgrounds: the stream's
             realism options for real test images (``sc6d_jax.data.StreamConfig``; off by
             default). The validation crops never use them, so runs with and without them are
             scored on the same crops.
@@ -103,6 +104,7 @@ class StreamSettings:
     box_scale: tuple[float, float] | None = None
     box_source: str | None = None
     object_gain: tuple[float, float] | None = None
+    object_contrast: tuple[float, float] | None = None
     scene_backgrounds: float = 0.0
     image_border: bool = False
 
@@ -122,10 +124,11 @@ class StreamSettings:
             raise ValueError(f"stream.box_shift must be in [0, 1) or None, got {self.box_shift!r}")
         if not 0.0 <= self.scene_backgrounds <= 1.0:
             raise ValueError(f"stream.scene_backgrounds must be in [0, 1], got {self.scene_backgrounds!r}")
-        if self.object_gain is not None:
-            from sc6d_jax.data._stream import positive_range
+        for name in ("object_gain", "object_contrast"):
+            if getattr(self, name) is not None:
+                from sc6d_jax.data._stream import positive_range
 
-            object.__setattr__(self, "object_gain", positive_range(self.object_gain, "stream.object_gain"))
+                object.__setattr__(self, name, positive_range(getattr(self, name), f"stream.{name}"))
         if self.placement is not None:
             from sc6d_jax.data._stream import unit_range
 

@@ -323,7 +323,7 @@ def train(
         common["dense"] = True
     if getattr(cfg.model, "pe_turns", False):
         common["pe_turns"] = True
-    for name in ("materials", "resample", "sensor", "distractors", "max_faces", "object_gain",
+    for name in ("materials", "resample", "sensor", "distractors", "max_faces", "object_gain", "object_contrast",
                  "scene_backgrounds", "image_border"):  # stream options, when on
         if getattr(cfg.stream, name):
             common[name] = getattr(cfg.stream, name)
