@@ -1,5 +1,5 @@
-"""Where the gap between renders and real photographs lies: one model scored on four versions of
-a real BOP test set that swap the object's pixels and its surroundings between real and rendered.
+"""Where the gap between renders and real photographs lies: one model scored on versions of a real
+BOP test set that swap the object's pixels and its surroundings between real and rendered.
 
     python experiments/lmo_gap.py --run runs/lmo-ab/real --dataset ../shared/data/lmo \\
         --out runs/lmo-gap [--obj-ids 8] [--tta] [--seed 0] [--library-size N]
@@ -14,10 +14,18 @@ versions, each a BOP test folder under ``OUT`` with the original annotations:
   procedural background (the training stream's kind) everywhere else;
 - ``rendered_objects``: the rendered objects pasted over the photographs at their visible masks;
 - ``rendered``: the rendered objects over a procedural background (the training distribution,
-  without its occluders and colour augmentation).
+  without its occluders and colour augmentation);
+- ``real_objects_recoloured``: ``real_objects`` with each object's photographed pixels shifted
+  and scaled per channel to the mean and spread of its rendered pixels (the same procedural
+  background);
+- ``rendered_recoloured``: ``rendered`` with each object's rendered pixels given the mean and
+  spread per channel of its photographed pixels.
 
 If ``real_objects`` scores like ``rendered``, the surroundings are the gap; if
-``rendered_objects`` does, the objects' appearance is. A diagnosis of a trained model only: it
+``rendered_objects`` does, the objects' appearance is. The two recoloured versions split the
+appearance: how much of it is the objects' colour statistics (their brightness, colour cast and
+contrast), which the recolouring exchanges, and how much is the rest (shading, texture,
+sharpness), which it keeps. A diagnosis of a trained model only: it
 trains nothing and chooses no setting. Prints AR and the pose-error breakdown per version
 (restricted to ``--obj-ids`` when given) and writes ``OUT/gap.csv``; rerunning skips finished work.
 """
@@ -38,7 +46,7 @@ sys.path.insert(0, str(ROOT / "experiments"))
 
 from learning_curve import BREAKDOWN_COLUMNS, dataset_rows, run_scores  # noqa: E402
 
-VERSIONS = ("real", "real_objects", "rendered_objects", "rendered")
+VERSIONS = ("real", "real_objects", "rendered_objects", "rendered", "real_objects_recoloured", "rendered_recoloured")
 COLUMNS = ("version", "obj_id", "targets", "ar", "ar_mssd", "ar_mspd", *BREAKDOWN_COLUMNS)
 SHARED_FILES = ("camera.json", "test_targets_bop19.json", "models", "models_eval")
 SCENE_FILES = ("scene_camera.json", "scene_gt.json", "scene_gt_info.json")
@@ -49,8 +57,15 @@ def _link(src: Path, dst: Path) -> None:
         dst.symlink_to(src.resolve(), target_is_directory=src.is_dir())
 
 
+def match_colours(x: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Pixels ``x`` (N, 3) shifted and scaled per channel to the mean and spread of ``ref`` (M, 3)."""
+    x, ref = x.astype(np.float64), ref.astype(np.float64)
+    y = (x - x.mean(0)) / np.maximum(x.std(0), 1e-6) * ref.std(0) + ref.mean(0)
+    return np.clip(np.round(y), 0, 255).astype(np.uint8)
+
+
 def build_versions(dataset: Path, out: Path, seed: int) -> dict[str, Path]:
-    """The four versions of ``dataset`` (``real`` is the dataset itself); images are written once."""
+    """The versions of ``dataset`` (``real`` is the dataset itself); images are written once."""
     import cv2
 
     from sc6d_jax.bop import BopDataset, model_path
@@ -87,8 +102,13 @@ def build_versions(dataset: Path, out: Path, seed: int) -> dict[str, Path]:
             r = renderer.render(objs, cams[s][im].K, depth=False)
             m = r.mask_visib.any(axis=0)[..., None]
             bg = _background(rng, w, h)
+            real_rec, rend_rec = real.copy(), r.rgb.copy()
+            for mk in r.mask_visib:  # each object's visible pixels, photographed and rendered
+                if mk.any():
+                    real_rec[mk], rend_rec[mk] = match_colours(real[mk], r.rgb[mk]), match_colours(r.rgb[mk], real[mk])
             imgs = {"real_objects": np.where(m, real, bg), "rendered_objects": np.where(m, r.rgb, real),
-                    "rendered": np.where(m, r.rgb, bg)}
+                    "rendered": np.where(m, r.rgb, bg), "real_objects_recoloured": np.where(m, real_rec, bg),
+                    "rendered_recoloured": np.where(m, rend_rec, bg)}
             for v in todo:
                 d = out / v / "test" / f"{s:06d}"
                 (d / "rgb").mkdir(parents=True, exist_ok=True)
@@ -129,10 +149,10 @@ def main(argv: list[str] | None = None) -> int:
                         *([] if a.library_size is None else ["--library-size", str(a.library_size)]))
         sc = run_scores(a.run, paths[v], a.out, v + ("_tta" if a.tta else ""), predict_args)
         rows += dataset_rows(v, sc, obj_ids, key="version")
-    print(f"{'version':>16} {'obj':>4} {'n':>4} {'AR':>6} {'MSSD':>6} {'MSPD':>6} {'rot':>7} {'depth':>7} {'centre':>7}")
+    print(f"{'version':>23} {'obj':>4} {'n':>4} {'AR':>6} {'MSSD':>6} {'MSPD':>6} {'rot':>7} {'depth':>7} {'centre':>7}")
     for r in rows:
         rot, dep, cen = r.get("rot_median_deg"), r.get("depth_rel_median"), r.get("centre_median_px")
-        print(f"{r['version']:>16} {r['obj_id']:>4} {r['targets']:>4} {r['ar']:6.3f} {r['ar_mssd']:6.3f} "
+        print(f"{r['version']:>23} {r['obj_id']:>4} {r['targets']:>4} {r['ar']:6.3f} {r['ar_mssd']:6.3f} "
               f"{r['ar_mspd']:6.3f} " + (f"{rot:7.1f} {100 * dep:6.1f}% {cen:7.1f}" if rot is not None else ""))
     tmp = a.out / "gap.tmp"
     with open(tmp, "w", newline="") as f:

@@ -4,7 +4,8 @@
         [--dataset ../shared/data/lmo] [--n 10] [--size 64] [--seed 0]
 
 Rows: the stream as the presets use it, then with each realism option alone (``materials``,
-``sensor``, ``resample``, ``distractors=3``, ``object_gain=(0.5, 2)``, ``scene_backgrounds=1``), then the
+``sensor``, ``resample``, ``distractors=3``, ``object_gain=(0.5, 2)``, ``object_contrast=(0.5, 2)``,
+``scene_backgrounds=1``), then the
 first four together. Every row draws from the same seed,
 so column j shows the same object at the same pose in every row; the options draw random numbers
 of their own, so backgrounds, lights and the in-plane turns differ. With ``--dataset``, a last
@@ -32,6 +33,7 @@ ROWS: tuple[tuple[str, dict], ...] = (
     ("resample", {"resample": True}),
     ("distractors=3", {"distractors": 3}),
     ("object_gain=0.5,2", {"object_gain": (0.5, 2.0)}),
+    ("object_contrast=0.5,2", {"object_contrast": (0.5, 2.0)}),
     ("scene_backgrounds=1", {"scene_backgrounds": 1.0}),
     ("all four", {"materials": True, "sensor": True, "resample": True, "distractors": 3}),
 )

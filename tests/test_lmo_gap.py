@@ -46,6 +46,15 @@ def test_versions_swap_objects_and_surroundings_and_are_scored(photos, tmp_path,
         assert np.all(np.all(ro == a, axis=-1) | np.all(rd == a, axis=-1))  # each pixel keeps one of the two
         np.testing.assert_array_equal(r[inside], rd[inside])  # the rendered objects are the same render
         np.testing.assert_array_equal(r[outside], ro[outside])  # the same procedural background
+        rro, rr = (ver[v].load_rgb(sid, im) for v in ("real_objects_recoloured", "rendered_recoloured"))
+        np.testing.assert_array_equal(rro[outside], ro[outside])
+        np.testing.assert_array_equal(rr[outside], ro[outside])
+        # recoloured, the photographed pixels take the rendered ones' mean colour, and the other way round
+        np.testing.assert_allclose(rro[inside].mean(0), r[inside].mean(0), atol=6)
+        np.testing.assert_allclose(rr[inside].mean(0), a[inside].mean(0), atol=6)
+    x = np.array([[0, 10, 20], [20, 30, 20]], np.uint8)
+    ref = np.array([[100, 100, 100], [140, 100, 120]], np.uint8)
+    np.testing.assert_array_equal(lmo_gap.match_colours(x, ref), [[100, 100, 110], [140, 100, 110]])
     rows = list(csv.DictReader(open(out / "gap.csv")))
     assert [r["version"] for r in rows if r["obj_id"] == "all"] == list(lmo_gap.VERSIONS)
     assert all(0.0 <= float(r["ar"]) <= 1.0 for r in rows)
