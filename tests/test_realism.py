@@ -98,22 +98,31 @@ def test_distractors_stay_behind_the_target(models):
         StreamConfig(str(models), distractors=-1)
 
 
-def test_object_gain_scales_the_objects_and_keeps_the_background(models):
-    """Plain backgrounds, no occluders or augmentation: with object_gain the background pixels are
-    those of the stream without it, and each crop's object pixels are one factor brighter or darker
-    (within the range), the labels unchanged."""
+def _object_pixels_with(models, **option) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Plain backgrounds, no occluders or augmentation, with and without a stream option that
+    changes only the objects' pixels: checks that the labels and the background are the same,
+    and returns each crop's object pixels (without, with) as float arrays (N, 3)."""
     kw = dict(crop_size=48, batch_size=12, workers=0, obj_ids=(1, 5, 8), seed=5, augment=False,
               background="plain", occlusion=0.0)
     with CropStream(StreamConfig(str(models), **kw)) as s:
         base = s.batch(0)
-    with CropStream(StreamConfig(str(models), object_gain=(0.5, 2.0), **kw)) as s:
-        gained = s.batch(0)
+    with CropStream(StreamConfig(str(models), **option, **kw)) as s:
+        changed = s.batch(0)
     for k in ("R", "t", "K", "delta_z", "obj_id", "mask_visib"):
-        np.testing.assert_array_equal(gained[k], base[k])
-    ratios = []
-    for a, b, m in zip(base["rgb"], gained["rgb"], base["mask_visib"]):
+        np.testing.assert_array_equal(changed[k], base[k])
+    out = []
+    for a, b, m in zip(base["rgb"], changed["rgb"], base["mask_visib"]):
         np.testing.assert_array_equal(b[m == 0], a[m == 0])  # the background is untouched
-        x, y = a[m > 0].astype(np.float64), b[m > 0].astype(np.float64)
+        out.append((a[m > 0].astype(np.float64), b[m > 0].astype(np.float64)))
+    return out
+
+
+def test_object_gain_scales_the_objects_and_keeps_the_background(models):
+    """Plain backgrounds, no occluders or augmentation: with object_gain the background pixels are
+    those of the stream without it, and each crop's object pixels are one factor brighter or darker
+    (within the range), the labels unchanged."""
+    ratios = []
+    for x, y in _object_pixels_with(models, object_gain=(0.5, 2.0)):
         ok = (x > 20) & (y < 250)  # neither dark (rounding) nor saturated
         ratios.append(np.median(y[ok] / x[ok]))
     ratios = np.array(ratios)
@@ -129,18 +138,8 @@ def test_object_contrast_spreads_each_object_about_its_mean(models):
     """Plain backgrounds, no occluders or augmentation: with object_contrast the background and the
     labels are those of the stream without it, each crop's object keeps its mean colour, and its
     pixels' spread about that mean grows or shrinks by one factor (within the range, both ways)."""
-    kw = dict(crop_size=48, batch_size=12, workers=0, obj_ids=(1, 5, 8), seed=5, augment=False,
-              background="plain", occlusion=0.0)
-    with CropStream(StreamConfig(str(models), **kw)) as s:
-        base = s.batch(0)
-    with CropStream(StreamConfig(str(models), object_contrast=(0.5, 2.0), **kw)) as s:
-        spread = s.batch(0)
-    for k in ("R", "t", "K", "delta_z", "obj_id", "mask_visib"):
-        np.testing.assert_array_equal(spread[k], base[k])
     factors = []
-    for a, b, m in zip(base["rgb"], spread["rgb"], base["mask_visib"]):
-        np.testing.assert_array_equal(b[m == 0], a[m == 0])  # the background is untouched
-        x, y = a[m > 0].astype(np.float64), b[m > 0].astype(np.float64)
+    for x, y in _object_pixels_with(models, object_contrast=(0.5, 2.0)):
         if (y > 250).mean() + (y < 5).mean() > 0.02:
             continue  # clipped: the spread is no longer one factor
         np.testing.assert_allclose(y.mean(0), x.mean(0), atol=1.0)  # the mean colour stays
