@@ -39,7 +39,7 @@ summary under the key ``"breakdown"`` of their scores.
 from __future__ import annotations
 
 import math
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
@@ -77,12 +77,25 @@ EXTENT_BINS: tuple[tuple[str, float, float], ...] = (
 )
 """(label, low, high) of the groups by :func:`extent_ratio` of :func:`summarize_breakdown`."""
 
-#: The groupings of :func:`summarize_breakdown`: (summary key, per-target value, its bins, its
-#: valid range as a test, the range in words), in the order they are reported.
-GROUPINGS: tuple[tuple[str, str, tuple[tuple[str, float, float], ...], Any, str], ...] = (
-    ("per_visibility", "visib_fract", VISIBILITY_BINS, lambda v: 0.0 <= v <= 1.0, "in [0, 1]"),
-    ("per_ray_angle", "ray_deg", RAY_BINS, lambda v: 0.0 <= v <= 180.0, "in [0, 180]"),
-    ("per_extent", "extent", EXTENT_BINS, lambda v: v > 0.0, "a positive number"),
+class Grouping(NamedTuple):
+    """One grouping of :func:`summarize_breakdown`'s targets by a per-target value."""
+
+    key: str  # the summary's key
+    value: str  # the per-target value it groups by
+    bins: tuple[tuple[str, float, float], ...]  # (label, low, high)
+    valid: Callable[[float], bool]  # the value's valid range, as a test
+    valid_words: str  # the same range in words (error messages)
+    title: str  # the heading of its table (``sc6d eval``)
+
+
+#: The groupings of :func:`summarize_breakdown`, in the order they are reported.
+GROUPINGS: tuple[Grouping, ...] = (
+    Grouping("per_visibility", "visib_fract", VISIBILITY_BINS, lambda v: 0.0 <= v <= 1.0, "in [0, 1]",
+             "by visible fraction of the target:"),
+    Grouping("per_ray_angle", "ray_deg", RAY_BINS, lambda v: 0.0 <= v <= 180.0, "in [0, 180]",
+             "by angle of the target's ray from the optical axis:"),
+    Grouping("per_extent", "extent", EXTENT_BINS, lambda v: v > 0.0, "a positive number",
+             "by the target's extent across the view over its diameter (low: seen along its length):"),
 )
 
 SUMMARY_KEYS: tuple[str, ...] = (
@@ -333,11 +346,11 @@ def summarize_breakdown(per_target: Sequence[Mapping[str, Any]]) -> dict[str, An
         missed.append(bool(d.get("missed", False)))
         sd = d.get("depth_signed")
         signed.append(math.nan if sd is None else float(sd))
-        for vals, (_, k, _, valid, what) in zip(grouped, GROUPINGS):
-            if d.get(k) is not None:
-                v = float(d[k])
-                if not valid(v):
-                    raise ValueError(f"per_target[{i}][{k!r}] must be {what}, got {d[k]!r}")
+        for vals, g in zip(grouped, GROUPINGS):
+            if d.get(g.value) is not None:
+                v = float(d[g.value])
+                if not g.valid(v):
+                    raise ValueError(f"per_target[{i}][{g.value!r}] must be {g.valid_words}, got {d[g.value]!r}")
                 vals.append(v)
     o = np.asarray(obj, dtype=np.int64)
     sg = np.asarray(signed, dtype=np.float64)
@@ -348,12 +361,12 @@ def summarize_breakdown(per_target: Sequence[Mapping[str, Any]]) -> dict[str, An
         sel = o == oid
         per_object[oid] = _summary(rot[sel], depth[sel], centre[sel], int(m[sel].sum()), sg[sel])
     out = {"overall": _summary(rot, depth, centre, int(m.sum()), sg), "per_object": per_object}
-    for vals, (key, _, bins, _, _) in zip(grouped, GROUPINGS):
+    for vals, g in zip(grouped, GROUPINGS):
         if vals and len(vals) == len(obj):
             v = np.asarray(vals)
-            out[key] = {
+            out[g.key] = {
                 label: _summary(rot[sel], depth[sel], centre[sel], int(m[sel].sum()), sg[sel])
-                for label, lo, hi in bins if (sel := (v >= lo) & (v < hi)).any()
+                for label, lo, hi in g.bins if (sel := (v >= lo) & (v < hi)).any()
             }
     return out
 

@@ -105,14 +105,10 @@ def format_breakdown_table(breakdown: dict[str, Any]) -> str:
     for obj_id, d in breakdown["per_object"].items():
         lines.append(row(str(obj_id), d))
     lines.append(row("all", breakdown["overall"]))
-    titles = {"per_visibility": "by visible fraction of the target:",
-              "per_ray_angle": "by angle of the target's ray from the optical axis:",
-              "per_extent": "by the target's extent across the view over its diameter (low: seen along its length):"}
-    for key, *_ in GROUPINGS:
-        title = titles[key]
-        if breakdown.get(key):
-            lines.append(title)
-            for label, d in breakdown[key].items():
+    for g in GROUPINGS:
+        if breakdown.get(g.key):
+            lines.append(g.title)
+            for label, d in breakdown[g.key].items():
                 lines.append(row(label, d))
     return "\n".join(lines)
 
@@ -138,7 +134,7 @@ def _jsonable(scores: dict[str, Any]) -> dict[str, Any]:
         bd = scores["breakdown"]
         out["breakdown"] = _finite_or_none(
             {"overall": bd["overall"], "per_object": {str(k): v for k, v in bd["per_object"].items()},
-             **{k: bd[k] for k, *_ in GROUPINGS if k in bd}}
+             **{g.key: bd[g.key] for g in GROUPINGS if g.key in bd}}
         )
     return out
 
