@@ -1,4 +1,4 @@
-"""The crop stream's realism options (materials, resampling, sensor effects, background clutter, object gain, rendered clutter scenes)."""
+"""The crop stream's realism options (materials, resampling, sensor effects, background clutter, object gain, rendered clutter scenes, shadows)."""
 
 from __future__ import annotations
 
@@ -205,6 +205,81 @@ def test_scene_backgrounds_are_windows_of_rendered_clutter(models):
         apply_overrides(preset("tiny"), ["stream.scene_backgrounds=-0.1"])
 
 
+def _plate_and_ball(shadow_size: int = 256) -> Renderer:
+    plate = trimesh.creation.box(extents=(400.0, 400.0, 4.0))
+    plate.visual.face_colors = [200, 200, 200, 255]
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=30.0)
+    ball.visual.face_colors = [60, 120, 200, 255]
+    return Renderer({1: plate, 2: ball}, 96, 96, n_lights=1, shadow_size=shadow_size)
+
+
+def test_a_light_casts_the_shadow_of_one_object_onto_another():
+    """A ball in front of a plate, lit along (1, 0, 1): with ``castshadow`` a dark spot appears
+    on the plate where the ball's shadow falls, nowhere else; the ball itself and the plate's lit
+    part keep their colours, and ``render(shadows=False)`` draws it unshadowed."""
+    K = np.array([[120.0, 0, 47.5], [0, 120.0, 47.5], [0, 0, 1]])
+    scene = [(1, np.eye(3), np.array([0.0, 0.0, 1000.0])), (2, np.eye(3), np.array([-80.0, 0.0, 800.0]))]
+    r = _plate_and_ball()
+    try:
+        images = {}
+        for cast in (False, True):
+            r.set_lights([Light(direction=(1.0, 0.0, 1.0), diffuse=0.6, specular=0.0, castshadow=cast)],
+                         headlight=(0.3, 0.0), shadow_region=((0.0, 0.0, 900.0), 400.0))
+            images[cast] = r.render(scene, K).rgb.astype(np.int32)
+            if cast:
+                unshadowed = r.render(scene, K, shadows=False).rgb.astype(np.int32)
+        lit, shaded = images[False], images[True]
+        # the light's ray through the ball's centre meets the plate (z = 998) at x = 118 mm:
+        # u = 47.5 + 120 * 118 / 998 = 61.7 px, v = 47.5 px; the ball is seen at u = 35.5
+        assert (lit[47, 61] - shaded[47, 61]).min() > 60  # in the shadow: the light's share is gone
+        assert np.abs(lit[47, 47] - shaded[47, 47]).max() <= 2  # plate outside the shadow
+        assert np.abs(lit[47, 35] - shaded[47, 35]).max() <= 2  # the ball
+        dark = (lit - shaded).min(axis=-1) > 30
+        ys, xs = np.nonzero(dark)
+        assert 20 < len(xs) < 150 and xs.min() > 53 and xs.max() < 71 and ys.min() > 38 and ys.max() < 57
+        assert np.abs(unshadowed - lit).max() <= 2
+        with pytest.raises(ValueError, match="shadow_region"):
+            r.set_lights([Light(direction=(1.0, 0.0, 1.0), castshadow=True)])
+        with pytest.raises(ValueError, match="shadow_region"):
+            r.set_lights([Light(direction=(1.0, 0.0, 1.0), castshadow=True)], shadow_region=((0, 0, 800), -1.0))
+    finally:
+        r.close()
+    r = _plate_and_ball(shadow_size=0)
+    try:
+        with pytest.raises(ValueError, match="shadow_size=0"):
+            r.set_lights([Light(direction=(1.0, 0.0, 1.0), castshadow=True)], shadow_region=((0, 0, 800), 400.0))
+    finally:
+        r.close()
+    with pytest.raises(ValueError, match="shadow_size"):
+        _plate_and_ball(shadow_size=-1)
+
+
+def test_stream_shadows_darken_the_objects_and_keep_the_labels(models):
+    """shadows=1: every crop's key light casts shadows from a side; the labels are drawn as
+    without the option, batches are a pure function of the seed, and with shadows=0 (the
+    default) the stream draws no extra random numbers (earlier runs' streams unchanged)."""
+    kw = dict(crop_size=48, batch_size=8, workers=0, obj_ids=(1, 5, 8), seed=5, augment=False, occlusion=1.0,
+              background="plain")
+    with CropStream(StreamConfig(str(models), **kw)) as s:
+        base = s.batch(0)
+    with CropStream(StreamConfig(str(models), shadows=0.0, **kw)) as s:
+        off = s.batch(0)
+    for k in base:
+        np.testing.assert_array_equal(off[k], base[k])
+    with CropStream(StreamConfig(str(models), shadows=1.0, **kw)) as s:
+        got, again = s.batch(0), s.batch(0)
+        assert s._local.renderer.shadow_size > 0
+    for k in got:
+        np.testing.assert_array_equal(got[k], again[k])
+    for k in ("R", "t", "K", "obj_id"):
+        np.testing.assert_array_equal(got[k], base[k])
+    assert not np.array_equal(got["rgb"], base["rgb"])
+    with pytest.raises(ValueError, match="shadows"):
+        StreamConfig(str(models), shadows=1.5)
+    with pytest.raises(ValueError, match="shadows"):
+        apply_overrides(preset("tiny"), ["stream.shadows=-0.1"])
+
+
 def test_realism_options_reach_the_stream_from_the_config(models, tmp_path):
     """``--set stream.sensor=true`` etc. (and the box jitter) are passed to the crop stream; when
     off (unset), nothing is."""
@@ -223,15 +298,16 @@ def test_realism_options_reach_the_stream_from_the_config(models, tmp_path):
                                            "stream.resample=true", "stream.box_shift=0", "stream.box_scale=0.9,1.1",
                                            "stream.box_source=visible", "stream.object_gain=0.5,2",
                                            "stream.object_contrast=0.7,1.5",
-                                           "stream.scene_backgrounds=0.5", "steps=2", "val_crops=0"])
+                                           "stream.scene_backgrounds=0.5", "stream.shadows=0.25", "steps=2",
+                                           "val_crops=0"])
     with pytest.raises(Stop):
         train(cfg, models, tmp_path / "a", workers=0, progress=False, verbose=False, data_fns=fns)
     keys = ("sensor", "distractors", "materials", "resample", "box_shift", "box_scale", "box_source", "object_gain",
-            "object_contrast", "scene_backgrounds")
+            "object_contrast", "scene_backgrounds", "shadows")
     assert {k: seen[-1].get(k) for k in keys} == {"sensor": True, "distractors": 2, "materials": True, "resample": True,
                                                   "box_shift": 0.0, "box_scale": (0.9, 1.1), "box_source": "visible",
                                                   "object_gain": (0.5, 2.0), "object_contrast": (0.7, 1.5),
-                                                  "scene_backgrounds": 0.5}
+                                                  "scene_backgrounds": 0.5, "shadows": 0.25}
     with pytest.raises(Stop):
         train(apply_overrides(preset("tiny", steps=2, val_crops=0), ["stream.box_shift=none", "stream.box_scale=none"]),
               models, tmp_path / "b", workers=0, progress=False, verbose=False, data_fns=fns)

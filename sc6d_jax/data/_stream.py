@@ -13,6 +13,7 @@ throughput.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import dataclasses
 import multiprocessing as mp
 import os
 import sys
@@ -39,6 +40,14 @@ VISIBLE_BOX_MIN = 0.3
 BACKGROUND_BANK = 256
 #: Rendered clutter scenes per worker (``StreamConfig.scene_backgrounds``).
 SCENE_BANK = 128
+#: Shadow map side in texels, and the half width it covers about the target in target diameters
+#: (``StreamConfig.shadows``): distractors lie up to ~3 diameters behind the target and a light
+#: from the side spreads them sideways in its map; 1024 texels over 7 diameters are ~2 texels
+#: per pixel of a 64-pixel crop (~1.5 diameters wide).
+SHADOW_SIZE = 1024
+SHADOW_REACH = 3.5
+#: the largest angle between the shadow-casting light's direction and the optical axis (degrees)
+SHADOW_LIGHT_ANGLE = 80.0
 #: Scheduling priority the worker processes lower themselves by (os.nice).
 WORKER_NICENESS = 10
 #: times in a row the stream restarts its render workers after one died (CropStream)
@@ -118,7 +127,15 @@ class StreamConfig:
             and primitive shapes on it, under random lights) instead of a procedural pattern;
             a bank of SCENE_BANK scenes is rendered once per worker (at twice the crop size).
             0 = off.
-        These seven default to off (the streams of earlier runs are unchanged); they are the
+        shadows: the probability that a crop's first directional light casts shadows of the
+            rendered geometry (the target on itself, occluders and distractors on the target and
+            on each other; not on the 2D background): a photograph's key light leaves dark,
+            sharp-edged regions on an object that unshadowed rendering never shows. That light
+            comes from any side (its direction uniform within SHADOW_LIGHT_ANGLE of the optical
+            axis; the other lights come mostly from behind the camera, where the shadows fall
+            out of sight). The shadow map covers SHADOW_REACH target diameters about the target.
+            0 = off (and the renderer makes no shadow map).
+        These eight default to off (the streams of earlier runs are unchanged); they are the
         stream's realism options for real test images (LM-O).
         image_border: the crop's pixels that lie outside the 640x480 image its pose was drawn in
             are black (after the colour augmentation) and not part of the visible mask, as in a
@@ -156,11 +173,13 @@ class StreamConfig:
     object_gain: tuple[float, float] | None = None
     object_contrast: tuple[float, float] | None = None
     scene_backgrounds: float = 0.0
+    shadows: float = 0.0
     image_border: bool = False
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.scene_backgrounds <= 1.0:
-            raise ValueError(f"scene_backgrounds must be a probability in [0, 1], got {self.scene_backgrounds!r}")
+        for name in ("scene_backgrounds", "shadows"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be a probability in [0, 1], got {getattr(self, name)!r}")
         for name in ("object_gain", "object_contrast"):
             if getattr(self, name) is not None:
                 object.__setattr__(self, name, positive_range(getattr(self, name), name))
@@ -350,7 +369,8 @@ class _Worker:
             from sc6d_jax.render import simplify_mesh
 
             meshes = {i: simplify_mesh(m, cfg.max_faces) for i, m in meshes.items()}
-        self.renderer = Renderer(meshes, S, S, max_instances=2, n_primitives=2, n_lights=2)
+        self.renderer = Renderer(meshes, S, S, max_instances=2, n_primitives=2, n_lights=2,
+                                 shadow_size=SHADOW_SIZE if cfg.shadows > 0 else 0)
         # A bank of procedural backgrounds (a function of the seed), varied per sample by
         # flips, a roll and a colour shift: 4x cheaper than drawing a new one per crop.
         bank_rng = np.random.default_rng([cfg.seed, 2**31 - 2])
@@ -412,7 +432,7 @@ class _Worker:
         xo, yo, wo, ho = (float(v) for v in p.box_obj)
         c0 = np.array([xo + wo / 2, yo + ho / 2])
         T0 = np.asarray(G.crop_transform(c0, cfg.pad * max(wo, ho), S), np.float64)
-        mask = self.renderer.render(objects, T0 @ p.K, primitives=prims, depth=False).mask_visib[0]
+        mask = self.renderer.render(objects, T0 @ p.K, primitives=prims, depth=False, shadows=False).mask_visib[0]
         ys, xs = np.nonzero(mask)
         if len(xs) < MIN_VISIBLE_PX:
             return None
@@ -481,7 +501,18 @@ class _Worker:
                   specular=rng.uniform(0.0, 0.4))
             for _ in range(rng.integers(1, 3))
         ]
-        self.renderer.set_lights(lights, headlight=(rng.uniform(0.1, 0.4), rng.uniform(0.1, 0.5)))
+        region = None
+        if cfg.shadows and rng.random() < cfg.shadows:  # no draw when off: earlier streams unchanged
+            # a key light from any side (uniform on the cap within SHADOW_LIGHT_ANGLE of the
+            # optical axis): one from behind the camera hides the shadows behind the objects
+            cos_th = rng.uniform(np.cos(np.radians(SHADOW_LIGHT_ANGLE)), 1.0)
+            ph = rng.uniform(0.0, 2 * np.pi)
+            sin_th = np.sqrt(1.0 - cos_th**2)
+            lights[0] = dataclasses.replace(lights[0], castshadow=True,
+                                            direction=(sin_th * np.cos(ph), sin_th * np.sin(ph), cos_th))
+            region = (p.t, SHADOW_REACH * self.diameters[p.obj_id])
+        self.renderer.set_lights(lights, headlight=(rng.uniform(0.1, 0.4), rng.uniform(0.1, 0.5)),
+                                 shadow_region=region)
         background = self.background(rng, difficulty)
         if cfg.box_source == "visible" and occluded:
             got = self._visible_crop(p, objects, prims)

@@ -59,12 +59,17 @@ class Primitive:
 
 @dataclass(frozen=True)
 class Light:
-    """A directional light shining along ``direction`` (camera frame), colours in [0, 1]."""
+    """A directional light shining along ``direction`` (camera frame), colours in [0, 1].
+
+    ``castshadow``: the light casts shadows of the rendered geometry (objects, occluders,
+    distractor shapes) onto itself (not onto a composited 2D background); needs a renderer
+    made with ``shadow_size > 0`` and a ``shadow_region`` in :meth:`Renderer.set_lights`."""
 
     direction: Sequence[float]
     diffuse: float | Sequence[float] = 0.6
     specular: float | Sequence[float] = 0.2
     ambient: float | Sequence[float] = 0.0
+    castshadow: bool = False
 
 
 @dataclass
@@ -149,6 +154,10 @@ class Renderer:
         n_primitives: number of distractor primitive slots.
         n_lights: number of directional light slots (unused ones are switched off).
         near, far: clipping distances in mm.
+        shadow_size: side in texels of the shadow map of lights that cast shadows (0: no
+            shadows, and no shadow map is made). The map covers the ``shadow_region`` given to
+            :meth:`set_lights`, so 512 texels over twice an object's diameter resolve about
+            1/200 of it.
 
     One renderer is not thread-safe; use one per process (``LP_NUM_THREADS=1`` helps when
     running several processes on few cores).
@@ -165,6 +174,7 @@ class Renderer:
         n_lights: int = 3,
         near: float = 10.0,
         far: float = 20_000.0,
+        shadow_size: int = 0,
     ) -> None:
         if not meshes:
             raise ValueError("Renderer needs at least one mesh")
@@ -174,17 +184,22 @@ class Renderer:
             raise ValueError(f"need 0 < near < far, got near={near}, far={far}")
         if max_instances < 1 or n_primitives < 0 or n_lights < 0:
             raise ValueError("max_instances >= 1, n_primitives >= 0, n_lights >= 0 required")
+        if not 0 <= int(shadow_size) <= 8192:
+            raise ValueError(f"shadow_size must be in 0..8192 texels, got {shadow_size}")
         self.width, self.height = int(width), int(height)
         self.near, self.far = float(near), float(far)
         self.obj_ids = [int(k) for k in meshes]
         self.max_instances = int(max_instances)
         self.n_primitives = int(n_primitives)
         self.n_lights = int(n_lights)
+        self.shadow_size = int(shadow_size)
+        self._shadow_region: tuple[np.ndarray, float] | None = None
         self._lock = threading.Lock()
 
         spec = mujoco.MjSpec()
         spec.compiler.inertiafromgeom = mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_FALSE
         spec.visual.quality.offsamples = 0
+        spec.visual.quality.shadowsize = self.shadow_size  # 0: MuJoCo makes no shadow map
         spec.visual.global_.offwidth = self.width
         spec.visual.global_.offheight = self.height
         spec.visual.headlight.ambient = [0.3, 0.3, 0.3]
@@ -281,14 +296,37 @@ class Renderer:
         self.set_lights(None)
 
     # ------------------------------------------------------------------ scene set-up
-    def set_lights(self, lights: Sequence[Light] | None, headlight: Sequence[float] | None = None) -> None:
+    def set_lights(
+        self,
+        lights: Sequence[Light] | None,
+        headlight: Sequence[float] | None = None,
+        shadow_region: tuple[Sequence[float], float] | None = None,
+    ) -> None:
         """Set the directional lights (None: one light from the upper left) and the headlight
-        (ambient, diffuse) intensities."""
+        (ambient, diffuse) intensities.
+
+        ``shadow_region`` (centre (3,) mm, radius mm): the ball whose geometry casts and
+        receives the shadows of lights with ``castshadow`` (each such light's orthographic shadow
+        map is centred there, ``radius`` to each side); required when a light casts shadows.
+        Geometry outside it is lit as if unshadowed."""
         model = self.model
         if lights is None:
             lights = [Light(direction=(0.4, 0.6, 1.0), diffuse=0.5, specular=0.2)] if self.n_lights else []
         if len(lights) > self.n_lights:
             raise ValueError(f"{len(lights)} lights requested, renderer has {self.n_lights} slots")
+        shadows = any(L.castshadow for L in lights)
+        if shadows:
+            if self.shadow_size == 0:
+                raise ValueError("a light casts shadows but the renderer was made with shadow_size=0")
+            if shadow_region is None:
+                raise ValueError("a light casts shadows: give shadow_region=(centre_mm, radius_mm)")
+            centre = np.asarray(shadow_region[0], np.float64).reshape(-1)
+            radius = float(shadow_region[1])
+            if centre.shape != (3,) or not np.isfinite(centre).all() or not (np.isfinite(radius) and radius > 0):
+                raise ValueError(f"shadow_region must be (centre (3,) mm, radius > 0 mm), got {shadow_region}")
+            # the light's depth range is the camera's [near, far] (MuJoCo): put the light half of
+            # it before the centre, so everything between the camera and far behind casts
+            self._con.shadowClip = radius
         for i in range(self.n_lights):
             if i < len(lights):
                 L = lights[i]
@@ -297,12 +335,17 @@ class Renderer:
                 if d.shape != (3,) or not np.isfinite(n) or n == 0:
                     raise ValueError(f"light {i}: direction must be a non-zero 3-vector")
                 model.light_dir[i] = d / n
-                model.light_pos[i] = -d / n * 1000.0
+                if L.castshadow:
+                    model.light_pos[i] = centre - d / n * 0.5 * (self.far + self.near)
+                else:
+                    model.light_pos[i] = -d / n * 1000.0
                 model.light_diffuse[i] = np.broadcast_to(L.diffuse, 3)
                 model.light_specular[i] = np.broadcast_to(L.specular, 3)
                 model.light_ambient[i] = np.broadcast_to(L.ambient, 3)
+                model.light_castshadow[i] = bool(L.castshadow)
                 model.light_active[i] = 1
             else:
+                model.light_castshadow[i] = 0
                 model.light_active[i] = 0
         if headlight is not None:
             amb, dif = float(headlight[0]), float(headlight[1])
@@ -399,14 +442,17 @@ class Renderer:
                 geom_of_seg[g.segid + 1] = g.objid
         self._segmap = geom_of_seg
         flags = scn.flags
+        shadow = flags[mujoco.mjtRndFlag.mjRND_SHADOW]
         flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = True
         flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = True
+        flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False  # ids only: no shadow passes
         try:
             mujoco.mjr_render(self._rect, scn, self._con)
             mujoco.mjr_readPixels(self._seg, None, self._rect, self._con)
         finally:
             flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = False
             flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = False
+            flags[mujoco.mjtRndFlag.mjRND_SHADOW] = shadow
         # segment id (+1, 0 = background) -> geom -> mocap body -> instance, as one small table
         geom = self._segmap
         mocap = np.where(geom >= 0, self._geom_mocap[np.maximum(geom, 0)], -1)
@@ -430,10 +476,13 @@ class Renderer:
         depth: bool = True,
         masks: bool = True,
         full_masks: bool = False,
+        shadows: bool = True,
     ) -> RenderOutput:
         """Render ``objects`` [(obj_id, R (3,3), t (3,) mm)] seen through pinhole ``K``.
 
         ``background`` (H, W, 3) uint8 is composited where nothing was drawn (needs masks).
+        ``shadows=False`` skips the shadow passes of lights that cast shadows (each costs about
+        two more draws of the scene), e.g. when only the masks or depth are wanted.
         Returns a RenderOutput; see its docstring for the fields.
         """
         if self._closed:
@@ -451,6 +500,7 @@ class Renderer:
             self._gl.make_current()
             slots = self._place(objects, primitives)
             self._update(K)
+            self._scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = bool(shadows)
             mujoco.mjr_render(self._rect, self._scene, self._con)
             # One thing in the scene: its mask is where depth was written (same rasteriser,
             # same coverage), so the segmentation pass is skipped.

@@ -67,7 +67,7 @@ class StreamSettings:
             an image is (``sc6d_jax.data.StreamConfig.image_border``); the validation crops do
             not, so runs with and without it are scored on the same crops.
         materials, resample, sensor, distractors, object_gain, object_contrast,
-            scene_backgrounds: the stream's
+            scene_backgrounds, shadows: the stream's
             realism options for real test images (``sc6d_jax.data.StreamConfig``; off by
             default). The validation crops never use them, so runs with and without them are
             scored on the same crops.
@@ -106,6 +106,7 @@ class StreamSettings:
     object_gain: tuple[float, float] | None = None
     object_contrast: tuple[float, float] | None = None
     scene_backgrounds: float = 0.0
+    shadows: float = 0.0
     image_border: bool = False
 
     #: fields whose ``None`` leaves the crop stream's own default in place
@@ -122,8 +123,9 @@ class StreamSettings:
             raise ValueError(f"stream.box_source must be 'amodal', 'visible' or None, got {self.box_source!r}")
         if self.box_shift is not None and not 0.0 <= self.box_shift < 1.0:
             raise ValueError(f"stream.box_shift must be in [0, 1) or None, got {self.box_shift!r}")
-        if not 0.0 <= self.scene_backgrounds <= 1.0:
-            raise ValueError(f"stream.scene_backgrounds must be in [0, 1], got {self.scene_backgrounds!r}")
+        for name in ("scene_backgrounds", "shadows"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"stream.{name} must be in [0, 1], got {getattr(self, name)!r}")
         for name in ("object_gain", "object_contrast"):
             if getattr(self, name) is not None:
                 from sc6d_jax.data._stream import positive_range

@@ -324,7 +324,7 @@ def train(
     if getattr(cfg.model, "pe_turns", False):
         common["pe_turns"] = True
     for name in ("materials", "resample", "sensor", "distractors", "max_faces", "object_gain", "object_contrast",
-                 "scene_backgrounds", "image_border"):  # stream options, when on
+                 "scene_backgrounds", "shadows", "image_border"):  # stream options, when on
         if getattr(cfg.stream, name):
             common[name] = getattr(cfg.stream, name)
     scfg = data_fns.stream_config(batch_size=local_bs, seed=_process_seed(cfg.seed, pidx, pcount), **common)
