@@ -312,6 +312,16 @@ def test_realism_options_reach_the_stream_from_the_config(models, tmp_path):
         train(apply_overrides(preset("tiny", steps=2, val_crops=0), ["stream.box_shift=none", "stream.box_scale=none"]),
               models, tmp_path / "b", workers=0, progress=False, verbose=False, data_fns=fns)
     assert not set(keys) & set(seen[-1])
+    # the training settings hold every option the stream takes from them, with the same default
+    import dataclasses
+
+    from sc6d_jax.data._stream import PASSED_WHEN_SET
+    from sc6d_jax.train import StreamSettings
+
+    stream_defaults = {f.name: f.default for f in dataclasses.fields(StreamConfig)}
+    assert set(keys) - {"box_shift", "box_scale", "box_source"} <= set(PASSED_WHEN_SET)
+    for name in PASSED_WHEN_SET:
+        assert getattr(StreamSettings(), name) == stream_defaults[name], name
     with pytest.raises(ValueError, match="distractors"):
         apply_overrides(preset("tiny"), ["stream.distractors=-1"])
     with pytest.raises(ValueError, match="box_scale"):

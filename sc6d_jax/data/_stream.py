@@ -177,12 +177,7 @@ class StreamConfig:
     image_border: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("scene_backgrounds", "shadows"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"{name} must be a probability in [0, 1], got {getattr(self, name)!r}")
-        for name in ("object_gain", "object_contrast"):
-            if getattr(self, name) is not None:
-                object.__setattr__(self, name, positive_range(getattr(self, name), name))
+        check_options(self)
         object.__setattr__(self, "placement", unit_range(self.placement, "placement"))
         if self.background not in ("textured", "plain"):
             raise ValueError(f"background must be 'textured' or 'plain', got {self.background!r}")
@@ -202,10 +197,31 @@ class StreamConfig:
             raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
         if self.workers < 0:
             raise ValueError(f"workers must be >= 0, got {self.workers}")
-        if not isinstance(self.distractors, int) or self.distractors < 0:
-            raise ValueError(f"distractors must be a non-negative integer, got {self.distractors!r}")
-        if not isinstance(self.max_faces, int) or self.max_faces < 0 or 0 < self.max_faces < 4:
-            raise ValueError(f"max_faces must be 0 (full meshes) or an integer >= 4, got {self.max_faces!r}")
+
+
+#: The stream's realism options for real test images (StreamConfig fields, all off by default),
+#: and the other options a training config passes on to the stream only when set: the one list
+#: that the training settings (``sc6d_jax.train.config.StreamSettings``) and loop follow.
+REALISM_OPTIONS = ("materials", "resample", "sensor", "distractors", "object_gain", "object_contrast",
+                   "scene_backgrounds", "shadows")
+PASSED_WHEN_SET = (*REALISM_OPTIONS, "max_faces", "image_border")
+
+
+def check_options(cfg, prefix: str = "") -> None:
+    """Check (and normalise in place: ranges become float pairs) the :data:`PASSED_WHEN_SET`
+    fields of ``cfg``, a StreamConfig or a training config's stream settings; the errors name each
+    field as ``prefix + name``."""
+    for name in ("scene_backgrounds", "shadows"):
+        v = getattr(cfg, name)
+        if not 0.0 <= v <= 1.0:
+            raise ValueError(f"{prefix}{name} must be a probability in [0, 1], got {v!r}")
+    for name in ("object_gain", "object_contrast"):
+        if getattr(cfg, name) is not None:
+            object.__setattr__(cfg, name, positive_range(getattr(cfg, name), prefix + name))
+    if not isinstance(cfg.distractors, int) or cfg.distractors < 0:
+        raise ValueError(f"{prefix}distractors must be a non-negative integer, got {cfg.distractors!r}")
+    if not isinstance(cfg.max_faces, int) or cfg.max_faces < 0 or 0 < cfg.max_faces < 4:
+        raise ValueError(f"{prefix}max_faces must be 0 (full meshes) or an integer >= 4, got {cfg.max_faces!r}")
 
 
 def _float_pair(value) -> tuple[float, ...]:

@@ -123,14 +123,9 @@ class StreamSettings:
             raise ValueError(f"stream.box_source must be 'amodal', 'visible' or None, got {self.box_source!r}")
         if self.box_shift is not None and not 0.0 <= self.box_shift < 1.0:
             raise ValueError(f"stream.box_shift must be in [0, 1) or None, got {self.box_shift!r}")
-        for name in ("scene_backgrounds", "shadows"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"stream.{name} must be in [0, 1], got {getattr(self, name)!r}")
-        for name in ("object_gain", "object_contrast"):
-            if getattr(self, name) is not None:
-                from sc6d_jax.data._stream import positive_range
+        from sc6d_jax.data._stream import check_options
 
-                object.__setattr__(self, name, positive_range(getattr(self, name), f"stream.{name}"))
+        check_options(self, "stream.")
         if self.placement is not None:
             from sc6d_jax.data._stream import unit_range
 
@@ -140,10 +135,6 @@ class StreamSettings:
             if len(b) != 2 or not 0.0 < b[0] <= b[1]:
                 raise ValueError(f"stream.box_scale must be (low, high) with 0 < low <= high, got {self.box_scale!r}")
             object.__setattr__(self, "box_scale", b)
-        if not isinstance(self.max_faces, int) or self.max_faces < 0 or 0 < self.max_faces < 4:
-            raise ValueError(f"stream.max_faces must be 0 (full meshes) or an integer >= 4, got {self.max_faces!r}")
-        if not isinstance(self.distractors, int) or self.distractors < 0:
-            raise ValueError(f"stream.distractors must be a non-negative integer, got {self.distractors!r}")
         if not 0.0 <= self.curriculum_fraction <= 1.0:
             raise ValueError(f"stream.curriculum_fraction must be in [0, 1], got {self.curriculum_fraction!r}")
         if not isinstance(self.batch_size, int) or self.batch_size < 1:

@@ -323,8 +323,9 @@ def train(
         common["dense"] = True
     if getattr(cfg.model, "pe_turns", False):
         common["pe_turns"] = True
-    for name in ("materials", "resample", "sensor", "distractors", "max_faces", "object_gain", "object_contrast",
-                 "scene_backgrounds", "shadows", "image_border"):  # stream options, when on
+    from sc6d_jax.data._stream import PASSED_WHEN_SET
+
+    for name in PASSED_WHEN_SET:  # stream options, when on
         if getattr(cfg.stream, name):
             common[name] = getattr(cfg.stream, name)
     scfg = data_fns.stream_config(batch_size=local_bs, seed=_process_seed(cfg.seed, pidx, pcount), **common)
