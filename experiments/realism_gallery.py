@@ -5,6 +5,7 @@
 
 Rows: the stream as the presets use it, then with each realism option alone (``materials``,
 ``sensor``, ``resample``, ``distractors=3``, ``object_gain=(0.5, 2)``, ``object_contrast=(0.5, 2)``,
+``object_colour=(0.7, 1.4)``,
 ``scene_backgrounds=1``, ``shadows=1``), then the first four together. Every row draws from the same seed,
 so column j shows the same object at the same pose in every row; the options draw random numbers
 of their own, so backgrounds, lights and the in-plane turns differ. With ``--dataset``, a last
@@ -33,6 +34,7 @@ ROWS: tuple[tuple[str, dict], ...] = (
     ("distractors=3", {"distractors": 3}),
     ("object_gain=0.5,2", {"object_gain": (0.5, 2.0)}),
     ("object_contrast=0.5,2", {"object_contrast": (0.5, 2.0)}),
+    ("object_colour=0.7,1.4", {"object_colour": (0.7, 1.4)}),
     ("scene_backgrounds=1", {"scene_backgrounds": 1.0}),
     ("shadows=1", {"shadows": 1.0}),
     ("all four", {"materials": True, "sensor": True, "resample": True, "distractors": 3}),

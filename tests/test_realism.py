@@ -9,7 +9,7 @@ import trimesh
 
 from sc6d_jax.data import CropStream, StreamConfig
 from sc6d_jax.data._augment import camera_effects
-from sc6d_jax.data._stream import object_contrast
+from sc6d_jax.data._stream import object_colour, object_contrast
 from sc6d_jax.render import Light, Renderer
 from sc6d_jax.train import DataFns, preset, train
 from sc6d_jax.train.cli import apply_overrides
@@ -161,6 +161,27 @@ def test_object_contrast_spreads_each_object_about_its_mean(models):
         apply_overrides(preset("tiny"), ["stream.object_contrast=0,2"])
 
 
+def test_object_colour_scales_each_channel_of_each_object(models):
+    """Plain backgrounds, no occluders or augmentation: with object_colour the background and the
+    labels are those of the stream without it, and each crop's object pixels are scaled per channel
+    by factors within the range that differ between channels."""
+    spreads = []
+    for x, y in _object_pixels_with(models, object_colour=(0.7, 1.4)):
+        ok = np.all((x > 20) & (y < 250), axis=1)  # neither dark (rounding) nor saturated
+        g = np.median(y[ok] / x[ok], axis=0)
+        assert np.all((g > 0.68) & (g < 1.43))
+        spreads.append(g.max() - g.min())
+    assert max(spreads) > 0.2  # the channels move apart: a white balance, not a gain
+    img = np.full((2, 2, 3), 100, np.uint8)
+    inst = np.array([[0, 0], [-1, 1]], np.int32)
+    out = object_colour(np.random.default_rng(0), img, inst, (0.5, 2.0))
+    np.testing.assert_array_equal(out[1, 0], img[1, 0])  # the background (-1) is untouched
+    np.testing.assert_array_equal(out[0, 0], out[0, 1])  # one instance: one set of factors
+    assert not np.array_equal(out[0, 0], out[1, 1])  # another instance: its own
+    with pytest.raises(ValueError, match="object_colour"):
+        apply_overrides(preset("tiny"), ["stream.object_colour=1.4,0.7"])
+
+
 def test_scene_backgrounds_are_windows_of_rendered_clutter(models):
     """scene_backgrounds=1: every crop's background is an S x S window (maybe mirrored) of one of
     the worker's rendered clutter scenes, which are a pure function of the seed and show the
@@ -297,16 +318,17 @@ def test_realism_options_reach_the_stream_from_the_config(models, tmp_path):
     cfg = apply_overrides(preset("tiny"), ["stream.sensor=true", "stream.distractors=2", "stream.materials=true",
                                            "stream.resample=true", "stream.box_shift=0", "stream.box_scale=0.9,1.1",
                                            "stream.box_source=visible", "stream.object_gain=0.5,2",
-                                           "stream.object_contrast=0.7,1.5",
+                                           "stream.object_contrast=0.7,1.5", "stream.object_colour=0.8,1.25",
                                            "stream.scene_backgrounds=0.5", "stream.shadows=0.25", "steps=2",
                                            "val_crops=0"])
     with pytest.raises(Stop):
         train(cfg, models, tmp_path / "a", workers=0, progress=False, verbose=False, data_fns=fns)
     keys = ("sensor", "distractors", "materials", "resample", "box_shift", "box_scale", "box_source", "object_gain",
-            "object_contrast", "scene_backgrounds", "shadows")
+            "object_contrast", "object_colour", "scene_backgrounds", "shadows")
     assert {k: seen[-1].get(k) for k in keys} == {"sensor": True, "distractors": 2, "materials": True, "resample": True,
                                                   "box_shift": 0.0, "box_scale": (0.9, 1.1), "box_source": "visible",
                                                   "object_gain": (0.5, 2.0), "object_contrast": (0.7, 1.5),
+                                                  "object_colour": (0.8, 1.25),
                                                   "scene_backgrounds": 0.5, "shadows": 0.25}
     with pytest.raises(Stop):
         train(apply_overrides(preset("tiny", steps=2, val_crops=0), ["stream.box_shift=none", "stream.box_scale=none"]),

@@ -122,6 +122,11 @@ class StreamConfig:
             crop, after ``object_gain``. A scan's vertex colours carry the light of its capture,
             and a photograph adds the test scene's: how strongly an object is shaded relative to
             its rendering is not known. None = off.
+        object_colour: (low, high): each drawn object's and occluder's pixels multiplied per
+            colour channel by factors log-uniform in [low, high], drawn per channel, object and
+            crop, after ``object_gain`` and before ``object_contrast``: a scan's vertex colours
+            carry the white balance of its capture, a photograph that of the test camera, and
+            the colour augmentation shifts the object and its surroundings together. None = off.
         scene_backgrounds: the probability that a crop's textured background is a window of a
             rendered tabletop clutter scene (``sc6d_jax.data._clutter``: a table with the models
             and primitive shapes on it, under random lights) instead of a procedural pattern;
@@ -135,7 +140,7 @@ class StreamConfig:
             axis; the other lights come mostly from behind the camera, where the shadows fall
             out of sight). The shadow map covers SHADOW_REACH target diameters about the target.
             0 = off (and the renderer makes no shadow map).
-        These eight default to off (the streams of earlier runs are unchanged); they are the
+        These nine default to off (the streams of earlier runs are unchanged); they are the
         stream's realism options for real test images (LM-O).
         image_border: the crop's pixels that lie outside the 640x480 image its pose was drawn in
             are black (after the colour augmentation) and not part of the visible mask, as in a
@@ -172,6 +177,7 @@ class StreamConfig:
     max_faces: int = 0
     object_gain: tuple[float, float] | None = None
     object_contrast: tuple[float, float] | None = None
+    object_colour: tuple[float, float] | None = None
     scene_backgrounds: float = 0.0
     shadows: float = 0.0
     image_border: bool = False
@@ -203,7 +209,7 @@ class StreamConfig:
 #: and the other options a training config passes on to the stream only when set: the one list
 #: that the training settings (``sc6d_jax.train.config.StreamSettings``) and loop follow.
 REALISM_OPTIONS = ("materials", "resample", "sensor", "distractors", "object_gain", "object_contrast",
-                   "scene_backgrounds", "shadows")
+                   "object_colour", "scene_backgrounds", "shadows")
 PASSED_WHEN_SET = (*REALISM_OPTIONS, "max_faces", "image_border")
 
 
@@ -215,7 +221,7 @@ def check_options(cfg, prefix: str = "") -> None:
         v = getattr(cfg, name)
         if not 0.0 <= v <= 1.0:
             raise ValueError(f"{prefix}{name} must be a probability in [0, 1], got {v!r}")
-    for name in ("object_gain", "object_contrast"):
+    for name in ("object_gain", "object_contrast", "object_colour"):
         if getattr(cfg, name) is not None:
             object.__setattr__(cfg, name, positive_range(getattr(cfg, name), prefix + name))
     if not isinstance(cfg.distractors, int) or cfg.distractors < 0:
@@ -242,6 +248,18 @@ def object_contrast(rng: np.random.Generator, rgb: np.ndarray, instance: np.ndar
         m = instance == k
         mu = x[m].mean(axis=0)
         x[m] = (x[m] - mu) * float(np.exp(rng.uniform(lo, hi))) + mu
+    return np.clip(x + 0.5, 0, 255).astype(np.uint8)
+
+
+def object_colour(rng: np.random.Generator, rgb: np.ndarray, instance: np.ndarray,
+                  span: tuple[float, float]) -> np.ndarray:
+    """``rgb`` with each instance's pixels (``instance == k``, k >= 0) multiplied per channel by
+    three factors of its own, log-uniform in ``span`` (drawn in the order of the instance ids)."""
+    x = rgb.astype(np.float32)
+    lo, hi = np.log(span[0]), np.log(span[1])
+    for k in np.unique(instance[instance >= 0]):
+        m = instance == k
+        x[m] *= np.exp(rng.uniform(lo, hi, 3)).astype(np.float32)
     return np.clip(x + 0.5, 0, 255).astype(np.uint8)
 
 
@@ -550,6 +568,8 @@ class _Worker:
             fg = out.instance >= 0
             rgb = rgb.copy()
             rgb[fg] = np.clip(rgb[fg].astype(np.float32) * gain + 0.5, 0, 255).astype(np.uint8)
+        if cfg.object_colour is not None:  # each object's white balance against its surroundings
+            rgb = object_colour(rng, rgb, out.instance, cfg.object_colour)
         if cfg.object_contrast is not None:  # each object's shading contrast, about its mean colour
             rgb = object_contrast(rng, rgb, out.instance, cfg.object_contrast)
         if cfg.resample or cfg.sensor:

@@ -66,7 +66,7 @@ class StreamSettings:
         image_border: black out the crop's pixels beyond the image's edges, as a crop cut from
             an image is (``sc6d_jax.data.StreamConfig.image_border``); the validation crops do
             not, so runs with and without it are scored on the same crops.
-        materials, resample, sensor, distractors, object_gain, object_contrast,
+        materials, resample, sensor, distractors, object_gain, object_contrast, object_colour,
             scene_backgrounds, shadows: the stream's
             realism options for real test images (``sc6d_jax.data.StreamConfig``; off by
             default). The validation crops never use them, so runs with and without them are
@@ -105,6 +105,7 @@ class StreamSettings:
     box_source: str | None = None
     object_gain: tuple[float, float] | None = None
     object_contrast: tuple[float, float] | None = None
+    object_colour: tuple[float, float] | None = None
     scene_backgrounds: float = 0.0
     shadows: float = 0.0
     image_border: bool = False
