@@ -238,29 +238,35 @@ def _float_pair(value) -> tuple[float, ...]:
         return ()
 
 
-def object_contrast(rng: np.random.Generator, rgb: np.ndarray, instance: np.ndarray,
-                    span: tuple[float, float]) -> np.ndarray:
-    """``rgb`` with each instance's pixels (``instance == k``, k >= 0) spread about their mean
-    colour by its own factor, log-uniform in ``span`` (drawn in the order of the instance ids)."""
+def _each_instance(rgb: np.ndarray, instance: np.ndarray, change) -> np.ndarray:
+    """``rgb`` with each instance's pixels (``instance == k``, k >= 0, in the order of the ids)
+    replaced by ``change(pixels)`` (float32 (n, 3)), rounded and clipped back to uint8."""
     x = rgb.astype(np.float32)
-    lo, hi = np.log(span[0]), np.log(span[1])
     for k in np.unique(instance[instance >= 0]):
         m = instance == k
-        mu = x[m].mean(axis=0)
-        x[m] = (x[m] - mu) * float(np.exp(rng.uniform(lo, hi))) + mu
+        x[m] = change(x[m])
     return np.clip(x + 0.5, 0, 255).astype(np.uint8)
+
+
+def object_contrast(rng: np.random.Generator, rgb: np.ndarray, instance: np.ndarray,
+                    span: tuple[float, float]) -> np.ndarray:
+    """``rgb`` with each instance's pixels spread about their mean colour by its own factor,
+    log-uniform in ``span`` (drawn in the order of the instance ids)."""
+    lo, hi = np.log(span[0]), np.log(span[1])
+
+    def spread(px: np.ndarray) -> np.ndarray:
+        mu = px.mean(axis=0)
+        return (px - mu) * float(np.exp(rng.uniform(lo, hi))) + mu
+
+    return _each_instance(rgb, instance, spread)
 
 
 def object_colour(rng: np.random.Generator, rgb: np.ndarray, instance: np.ndarray,
                   span: tuple[float, float]) -> np.ndarray:
-    """``rgb`` with each instance's pixels (``instance == k``, k >= 0) multiplied per channel by
-    three factors of its own, log-uniform in ``span`` (drawn in the order of the instance ids)."""
-    x = rgb.astype(np.float32)
+    """``rgb`` with each instance's pixels multiplied per channel by three factors of its own,
+    log-uniform in ``span`` (drawn in the order of the instance ids)."""
     lo, hi = np.log(span[0]), np.log(span[1])
-    for k in np.unique(instance[instance >= 0]):
-        m = instance == k
-        x[m] *= np.exp(rng.uniform(lo, hi, 3)).astype(np.float32)
-    return np.clip(x + 0.5, 0, 255).astype(np.uint8)
+    return _each_instance(rgb, instance, lambda px: px * np.exp(rng.uniform(lo, hi, 3)).astype(np.float32))
 
 
 def positive_range(value, name: str) -> tuple[float, float]:
