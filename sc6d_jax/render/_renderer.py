@@ -62,7 +62,7 @@ class Light:
     """A directional light shining along ``direction`` (camera frame), colours in [0, 1].
 
     ``castshadow``: the light casts shadows of the rendered geometry (objects, occluders,
-    distractor shapes) onto itself (not onto a composited 2D background); needs a renderer
+    distractor shapes) onto that geometry (not onto a composited 2D background); needs a renderer
     made with ``shadow_size > 0`` and a ``shadow_region`` in :meth:`Renderer.set_lights`."""
 
     direction: Sequence[float]
@@ -156,8 +156,8 @@ class Renderer:
         near, far: clipping distances in mm.
         shadow_size: side in texels of the shadow map of lights that cast shadows (0: no
             shadows, and no shadow map is made). The map covers the ``shadow_region`` given to
-            :meth:`set_lights`, so 512 texels over twice an object's diameter resolve about
-            1/200 of it.
+            :meth:`set_lights`, so 512 texels over twice an object's diameter resolve 1/256 of
+            it.
 
     One renderer is not thread-safe; use one per process (``LP_NUM_THREADS=1`` helps when
     running several processes on few cores).
@@ -193,7 +193,6 @@ class Renderer:
         self.n_primitives = int(n_primitives)
         self.n_lights = int(n_lights)
         self.shadow_size = int(shadow_size)
-        self._shadow_region: tuple[np.ndarray, float] | None = None
         self._lock = threading.Lock()
 
         spec = mujoco.MjSpec()
@@ -324,9 +323,7 @@ class Renderer:
             radius = float(shadow_region[1])
             if centre.shape != (3,) or not np.isfinite(centre).all() or not (np.isfinite(radius) and radius > 0):
                 raise ValueError(f"shadow_region must be (centre (3,) mm, radius > 0 mm), got {shadow_region}")
-            # the light's depth range is the camera's [near, far] (MuJoCo): put the light half of
-            # it before the centre, so everything between the camera and far behind casts
-            self._con.shadowClip = radius
+            self._con.shadowClip = radius  # the map's half width (MuJoCo, directional lights)
         for i in range(self.n_lights):
             if i < len(lights):
                 L = lights[i]
@@ -335,7 +332,8 @@ class Renderer:
                 if d.shape != (3,) or not np.isfinite(n) or n == 0:
                     raise ValueError(f"light {i}: direction must be a non-zero 3-vector")
                 model.light_dir[i] = d / n
-                if L.castshadow:
+                if L.castshadow:  # its depth range is the camera's [near, far] (MuJoCo): the light
+                    # half of it before the centre, so all between the camera and far behind casts
                     model.light_pos[i] = centre - d / n * 0.5 * (self.far + self.near)
                 else:
                     model.light_pos[i] = -d / n * 1000.0
