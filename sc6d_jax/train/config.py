@@ -508,8 +508,8 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # Crops black beyond the image's edges as test crops are (stream.image_border; obj 1, 6,000
         # steps): test AR 0.644 vs 0.646, 0.681 vs 0.676 fused: the same, not kept (obj1_border*).
         # 26,000 steps: about an hour on 2 cores with one renderer worker. The "long" preset is
-        # the same recipe over 150,000 steps, run in legs (sc6d carry); the shipped builtin was
-        # trained with the earlier 5,000 + 256 negatives (8.6 hours).
+        # the same recipe over 150,000 steps, run in legs (sc6d carry); the shipped builtin is its
+        # second run at step 118,000 (252 training minutes).
         cfg = TrainConfig(
             model=ModelConfig(
                 n_objects=1, crop_size=64, backbone="tiny", width=16, decoder_width=32, feat_dim=32,
