@@ -10,7 +10,8 @@ together. Every row draws from the same seed, so column j shows the same object 
 pose in every row; the options draw random numbers of their own, so backgrounds, lights and the
 in-plane turns differ. With ``--dataset``, a last row of real test crops cut at their
 ground-truth visible boxes the way the estimator cuts them (pad 1.5, linear warp) and a row of
-the same crops with the object rendered over them at its ground-truth pose. For looking at only: nothing here chooses a setting from real images.
+the same crops with the object rendered over them at its ground-truth pose. For looking at
+only: nothing here chooses a setting from real images.
 """
 
 from __future__ import annotations
