@@ -2,7 +2,7 @@
 BOP test set that swap the object's pixels and its surroundings between real and rendered.
 
     python experiments/lmo_gap.py --run runs/lmo-ab/real --dataset ../shared/data/lmo \\
-        --out runs/lmo-gap [--obj-ids 8] [--tta] [--seed 0] [--library-size N]
+        --out runs/lmo-gap [--obj-ids 8] [--tta] [--seed 0] [--library-size N] [--masks]
 
 Every annotated object of each test image is rendered at its ground-truth pose (the renderer's
 default light) with the others, which gives each one's visible mask (occlusion by annotated
@@ -28,6 +28,12 @@ contrast), which the recolouring exchanges, and how much is the rest (shading, t
 sharpness), which it keeps. A diagnosis of a trained model only: it
 trains nothing and chooses no setting. Prints AR and the pose-error breakdown per version
 (restricted to ``--obj-ids`` when given) and writes ``OUT/gap.csv``; rerunning skips finished work.
+
+``--masks`` also asks whether the pose decoder's gate (the predicted visible mask its features
+are multiplied by) is what fails (``mask_rows``, ``OUT/masks.csv``): per version, the predicted
+mask's IoU with the ground truth, and the rotation error with the network's own gate, with the
+ground-truth mask as the gate, and with its own gate cleared off the object. If the ground-truth
+gate rescues a version's rotations, the mask is the cause; if not, the features on the object.
 """
 
 from __future__ import annotations
@@ -122,6 +128,118 @@ def build_versions(dataset: Path, out: Path, seed: int) -> dict[str, Path]:
     return paths
 
 
+MASK_COLUMNS = ("version", "obj_id", "targets", "mask_iou_median", "mask_iou_under_half", "rot_own_gate_deg",
+                "rot_gt_gate_deg", "rot_own_gate_on_gt_deg")
+
+
+def mask_rows(run: str, dataset: Path, paths: dict[str, Path], obj_ids: list[int] | None,
+              library_size: int | None) -> list[dict]:
+    """The pose decoder's gate on each version: per target (ground-truth visible box, cut as
+    ``sc6d predict`` cuts it), the network's predicted visible mask at S/4 against the rendered
+    ground-truth visible mask cut the same way (IoU at 0.5), and the median symmetry-aware
+    rotation error (the best library match, made egocentric with the ground-truth translation)
+    with three gates: the network's own, the ground-truth mask instead, and its own with the
+    pixels off the ground-truth mask zeroed. Rows per version and object, and pooled (``all``).
+    Needs a model with ``mask_gate``."""
+    import jax
+    import jax.numpy as jnp
+
+    from sc6d_jax.bop import BopDataset, bbox_extent, model_path
+    from sc6d_jax.geometry import allocentric_to_egocentric, crop_transform, pe_map, warp_crop
+    from sc6d_jax.inference import Estimator
+    from sc6d_jax.inference._matching import match_library
+    from sc6d_jax.metrics._breakdown import rotation_error_deg, symmetry_rotations
+    from sc6d_jax.model import apply
+    from sc6d_jax.render import Renderer, load_mesh
+
+    kw = {} if library_size is None else {"library_size": library_size}
+    est = Estimator.load(run, progress=False, **kw)
+    if not est.mcfg.mask_gate:
+        raise ValueError(f"--masks needs a model with a mask gate (model.mask_gate); {run} has none")
+    S, mcfg = est.mcfg.crop_size, est.mcfg
+    ds = BopDataset(dataset)
+    wanted = set(est.obj_ids) if obj_ids is None else set(obj_ids) & set(est.obj_ids)
+    targets = [t for t in ds.targets() if t.obj_id in wanted]
+    if not targets:
+        return []
+    images = sorted({(t.scene_id, t.im_id) for t in targets})
+    gts = {k: ds.scene_gt(k[0])[k[1]] for k in images}
+    ids = sorted({g.obj_id for k in images for g in gts[k]})
+    h, w = ds.load_rgb(*images[0]).shape[:2]
+    syms = {i: symmetry_rotations(ds.models_info[i]) for i in wanted if i in ds.models_info}
+    blocks, n_valid = est.packed_library()
+    lib_R = np.asarray(est.library.R)
+
+    def rot_index(p, rgb, pe, oi, gt_mask, mode: int):  # mode 0: own gate, 1: GT mask, 2: own x GT
+        out = apply(p, mcfg, rgb, pe, oi)
+        if mode:
+            gate = gt_mask if mode == 1 else jax.nn.sigmoid(out["mask_logit"]) * gt_mask
+            out = apply(p, mcfg, rgb, pe, oi, teacher_gate=(gate, jnp.ones((rgb.shape[0],), bool)))
+        m = match_library(p["rot_head"], mcfg.rot_head, out["rot_emb"], blocks, n_valid, 1, est.tau, False, oi)
+        return out["mask_logit"], m.index[:, 0]
+
+    fwd = jax.jit(rot_index, static_argnums=5)
+    versions = {v: BopDataset(paths[v]) for v in VERSIONS}
+    per: dict[str, list[tuple[int, float, float, float, float]]] = {v: [] for v in VERSIONS}
+    renderer = Renderer({i: load_mesh(model_path(dataset / "models", i)) for i in ids}, w, h,
+                        max_instances=max(len(g) for g in gts.values()), n_lights=1)
+    try:
+        from tqdm import tqdm
+
+        for key in tqdm(images, desc="lmo_gap: masks", unit="image", file=sys.stderr):
+            K = ds.scene_camera(key[0])[key[1]].K
+            info = ds.scene_gt_info(key[0])[key[1]]
+            r = renderer.render([(g.obj_id, g.R, g.t) for g in gts[key]], K, depth=False)
+            imgs = {v: versions[v].load_rgb(*key) for v in VERSIONS}
+            for i, g in enumerate(gts[key]):
+                if g.obj_id not in wanted or info[i].bbox_visib[2] <= 0 or info[i].bbox_visib[3] <= 0:
+                    continue
+                box = np.asarray([bbox_extent(info[i].bbox_visib)], np.float32)
+                oi = jnp.asarray(est.obj_index([g.obj_id]))
+                gt = None
+                for v in VERSIONS:
+                    crops, center, side = est.make_crops(imgs[v], box, 1)
+                    T = np.asarray(crop_transform(center, side, S))
+                    if gt is None:  # the ground-truth visible mask at S/4, cut like the crop
+                        m = warp_crop(r.mask_visib[i].astype(np.float32), T, S, interpolation="linear")
+                        gt = m.reshape(1, S // 4, 4, S // 4, 4).mean(axis=(2, 4)) > 0.5
+                    pe = pe_map(jnp.asarray(K[None], jnp.float32), jnp.asarray(T, jnp.float32), S)
+                    pe = pe if mcfg.use_pe else None
+                    errs = []
+                    for mode in (0, 1, 2):
+                        logit, ix = fwd(est.params, jnp.asarray(crops), pe, oi, jnp.asarray(gt, jnp.float32), mode)
+                        R = np.asarray(allocentric_to_egocentric(jnp.asarray(lib_R[int(ix[0])]),
+                                                                 jnp.asarray(g.t, jnp.float32)))
+                        errs.append(rotation_error_deg(R, g.R, syms.get(g.obj_id)))
+                        if mode == 0:
+                            pred = np.asarray(logit) > 0.0
+                            iou = float((pred & gt).sum() / max((pred | gt).sum(), 1))
+                    per[v].append((g.obj_id, iou, *errs))
+    finally:
+        renderer.close()
+    rows = []
+    for v in VERSIONS:
+        a = per[v]
+        for oid in [*sorted({x[0] for x in a}), "all"]:
+            sel = np.array([x[1:] for x in a if oid == "all" or x[0] == oid], np.float64)
+            rows.append({"version": v, "obj_id": oid, "targets": len(sel),
+                         "mask_iou_median": float(np.median(sel[:, 0])),
+                         "mask_iou_under_half": float(np.mean(sel[:, 0] < 0.5)),
+                         "rot_own_gate_deg": float(np.median(sel[:, 1])),
+                         "rot_gt_gate_deg": float(np.median(sel[:, 2])),
+                         "rot_own_gate_on_gt_deg": float(np.median(sel[:, 3]))})
+    return rows
+
+
+def write_csv(path: Path, rows: list[dict], columns) -> None:
+    tmp = path.with_suffix(".tmp")
+    with open(tmp, "w", newline="") as f:
+        wr = csv.DictWriter(f, fieldnames=columns, extrasaction="ignore")
+        wr.writeheader()
+        wr.writerows(rows)
+    tmp.replace(path)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--run", required=True, help="a training run directory or a shipped model name")
@@ -131,6 +249,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tta", action="store_true", help="score with fused test-time augmentation")
     p.add_argument("--seed", type=int, default=0, help="seed of the procedural backgrounds")
     p.add_argument("--library-size", type=int, default=None, help="rotation library size (sc6d predict's default)")
+    p.add_argument("--masks", action="store_true",
+                   help="also measure the pose decoder's gate per version: predicted vs ground-truth visible "
+                        "mask and the rotation with each gate (OUT/masks.csv)")
     a = p.parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "egl")
     if not (a.dataset / "test").is_dir():
@@ -154,13 +275,21 @@ def main(argv: list[str] | None = None) -> int:
         rot, dep, cen = r.get("rot_median_deg"), r.get("depth_rel_median"), r.get("centre_median_px")
         print(f"{r['version']:>23} {r['obj_id']:>4} {r['targets']:>4} {r['ar']:6.3f} {r['ar_mssd']:6.3f} "
               f"{r['ar_mspd']:6.3f} " + (f"{rot:7.1f} {100 * dep:6.1f}% {cen:7.1f}" if rot is not None else ""))
-    tmp = a.out / "gap.tmp"
-    with open(tmp, "w", newline="") as f:
-        wr = csv.DictWriter(f, fieldnames=COLUMNS, extrasaction="ignore")
-        wr.writeheader()
-        wr.writerows(rows)
-    tmp.replace(a.out / "gap.csv")
+    write_csv(a.out / "gap.csv", rows, COLUMNS)
     print(f"lmo_gap: wrote {a.out / 'gap.csv'}")
+    if a.masks:
+        try:
+            mrows = mask_rows(a.run, a.dataset, paths, obj_ids, a.library_size)
+        except ValueError as e:
+            print(f"lmo_gap: error: {e}", file=sys.stderr)
+            return 2
+        print(f"{'version':>23} {'obj':>4} {'n':>4} {'IoU':>6} {'<0.5':>6} {'rot own':>8} {'GT gate':>8} {'own*GT':>8}")
+        for r in mrows:
+            print(f"{r['version']:>23} {r['obj_id']:>4} {r['targets']:>4} {r['mask_iou_median']:6.3f} "
+                  f"{r['mask_iou_under_half']:6.2f} {r['rot_own_gate_deg']:8.1f} {r['rot_gt_gate_deg']:8.1f} "
+                  f"{r['rot_own_gate_on_gt_deg']:8.1f}")
+        write_csv(a.out / "masks.csv", mrows, MASK_COLUMNS)
+        print(f"lmo_gap: wrote {a.out / 'masks.csv'}")
     return 0
 
 

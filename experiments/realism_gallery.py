@@ -5,13 +5,13 @@
 
 Rows: the stream as the presets use it, then with each realism option alone (``materials``,
 ``sensor``, ``resample``, ``distractors=3``, ``object_gain=(0.5, 2)``, ``object_contrast=(0.5, 2)``,
-``object_colour=(0.7, 1.4)``, ``scene_backgrounds=1``, ``shadows=1``), then the first four
-together. Every row draws from the same seed, so column j shows the same object at the same
-pose in every row; the options draw random numbers of their own, so backgrounds, lights and the
-in-plane turns differ. With ``--dataset``, a last row of real test crops cut at their
-ground-truth visible boxes the way the estimator cuts them (pad 1.5, linear warp) and a row of
-the same crops with the object rendered over them at its ground-truth pose. For looking at
-only: nothing here chooses a setting from real images.
+``object_colour=(0.7, 1.4)``, ``scene_backgrounds=1``, ``shadows=1``, ``tabletop=1``), the table
+with shadows, then the first four together. Every row draws from the same seed, so column j
+shows the same object at the same pose in every row; the options draw random numbers of their
+own, so backgrounds, lights and the in-plane turns differ. With ``--dataset``, a last row of
+real test crops cut at their ground-truth visible boxes the way the estimator cuts them (pad
+1.5, linear warp) and a row of the same crops with the object rendered over them at its
+ground-truth pose. For looking at only: nothing here chooses a setting from real images.
 """
 
 from __future__ import annotations
@@ -37,6 +37,8 @@ ROWS: tuple[tuple[str, dict], ...] = (
     ("object_colour=0.7,1.4", {"object_colour": (0.7, 1.4)}),
     ("scene_backgrounds=1", {"scene_backgrounds": 1.0}),
     ("shadows=1", {"shadows": 1.0}),
+    ("tabletop=1", {"tabletop": 1.0}),
+    ("tabletop=1, shadows=1", {"tabletop": 1.0, "shadows": 1.0}),
     ("all four", {"materials": True, "sensor": True, "resample": True, "distractors": 3}),
 )
 

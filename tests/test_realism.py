@@ -1,4 +1,5 @@
-"""The crop stream's realism options (materials, resampling, sensor effects, background clutter, object gain, rendered clutter scenes, shadows)."""
+"""The crop stream's realism options (materials, resampling, sensor effects, background clutter,
+object gain, rendered clutter scenes, shadows, tabletop scenes)."""
 
 from __future__ import annotations
 
@@ -226,6 +227,108 @@ def test_scene_backgrounds_are_windows_of_rendered_clutter(models):
         apply_overrides(preset("tiny"), ["stream.scene_backgrounds=-0.1"])
 
 
+def test_primitive_support_is_the_farthest_point_along_the_direction():
+    """``support`` of each primitive shape equals the largest projection of points sampled on its
+    surface (the box's corners exactly, the curved ones to within sampling)."""
+    from sc6d_jax.data._clutter import support
+    from sc6d_jax.data._scene import random_rotation
+
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(20000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    for _ in range(5):
+        R, n = random_rotation(rng), rng.normal(size=3)
+        n /= np.linalg.norm(n)
+        s = rng.uniform(5.0, 30.0, 3)
+        corners = np.array(np.meshgrid(*[[-1, 1]] * 3)).reshape(3, -1).T * s
+        assert support("box", s, R, n) == pytest.approx((corners @ R.T @ n).max(), rel=1e-9)
+        assert support("sphere", s, R, n) == pytest.approx(s[0])
+        assert support("ellipsoid", s, R, n) == pytest.approx(((u * s) @ R.T @ n).max(), rel=1e-3)
+        ang = rng.uniform(0, 2 * np.pi, 20000)
+        rim = np.stack([s[0] * np.cos(ang), s[0] * np.sin(ang), rng.choice([-1, 1], 20000) * s[1]], 1)
+        assert support("cylinder", s, R, n) == pytest.approx((rim @ R.T @ n).max(), rel=1e-3)
+    with pytest.raises(ValueError, match="shape"):
+        support("cone", (1, 1, 1), np.eye(3), np.array([0, 0, 1.0]))
+
+
+def test_tabletop_stands_the_target_and_its_neighbours_on_one_table(models):
+    """``tabletop_around``: the table's plane touches the target's lowest point and faces the
+    camera; every neighbour and shape rests on it without meeting the target; a pure function of
+    the seed. Rendered, the table never covers the target and fills much of the crop."""
+    from sc6d_jax import geometry as G
+    from sc6d_jax.bop import load_models_info, model_path
+    from sc6d_jax.data._clutter import TABLE_GREY, support, table_under, tabletop_around, textured_table
+    from sc6d_jax.data._scene import hull_vertices, sample_pose
+    from sc6d_jax.render import load_mesh
+
+    ids = [1, 5, 8]
+    info = load_models_info(models)
+    meshes = {i: load_mesh(model_path(models, i)) for i in ids}
+    verts = {i: hull_vertices(m.vertices) for i, m in meshes.items()}
+    radii = {i: float(np.linalg.norm(v, axis=1).max()) for i, v in verts.items()}
+    diam = {i: info[i].diameter for i in ids}
+    S = 64
+    ren = Renderer(meshes, S, S, max_instances=2, n_primitives=4)
+    try:
+        tables = 0.0
+        for seed in range(6):
+            p = sample_pose(np.random.default_rng(seed), ids, verts, diam)
+            rng = np.random.default_rng(100 + seed)
+            table, objs, prims = tabletop_around(rng, p.obj_id, p.R, p.t, verts, radii, diam, ids)
+            again = tabletop_around(np.random.default_rng(100 + seed), p.obj_id, p.R, p.t, verts, radii, diam, ids)
+            assert [o[0] for o in again[1]] == [o[0] for o in objs]
+            np.testing.assert_array_equal(again[0].t, table.t)
+            n, h = table_under(np.random.default_rng(100 + seed), p.R, p.t, verts[p.obj_id])
+            assert h < 0 < float(np.dot(n, -p.t))  # the camera (the origin) above the table, facing it
+            assert float(((verts[p.obj_id] @ p.R.T + p.t) @ n).min()) == pytest.approx(h)
+            top = np.asarray(table.t) + table.size[2] * n  # the box's top face lies in the plane
+            assert float(top @ n) == pytest.approx(h) and tuple(table.rgb) == (TABLE_GREY,) * 3
+            assert len(objs) <= 4 and len(prims) <= 2
+            for oid, R_o, c in objs:
+                assert float(((verts[oid] @ R_o.T + c) @ n).min()) == pytest.approx(h, abs=1e-6 * diam[oid])
+                assert np.linalg.norm(c - p.t) >= radii[oid] + radii[p.obj_id]
+            for q in prims:
+                assert float(np.asarray(q.t) @ n) - support(q.shape, q.size, q.R, n) == pytest.approx(h)
+            T = np.asarray(G.crop_transform(p.box[:2] + p.box[2:] / 2, 1.5 * p.box[2:].max(), S), np.float64)
+            K_B = T @ p.K
+            alone = ren.render([(p.obj_id, p.R, p.t)], K_B, depth=False)
+            on_table = ren.render([(p.obj_id, p.R, p.t)], K_B, primitives=[table], depth=False)
+            np.testing.assert_array_equal(on_table.mask_visib[0], alone.mask_visib[0])  # never in front
+            table_px = on_table.instance == 1
+            tables += table_px.mean()
+            tex = np.full((S, S, 3), 200, np.uint8)
+            out = textured_table(on_table.rgb, table_px, tex)
+            np.testing.assert_array_equal(out[~table_px], on_table.rgb[~table_px])
+            shade = on_table.rgb[table_px].astype(np.float64) / (255 * TABLE_GREY)
+            assert np.abs(out[table_px] - np.clip(200 * shade, 0, 255)).max() <= 1.0
+        assert tables / 6 > 0.3  # the table fills a good part of the crops
+    finally:
+        ren.close()
+
+
+def test_stream_tabletop_keeps_the_labels_and_is_deterministic(models):
+    """tabletop=1: the same poses and labels as without (the scene is drawn after them), other
+    pixels around the target, batches a pure function of the seed; bad values are refused."""
+    S = 48
+    kw = dict(crop_size=S, batch_size=8, workers=0, obj_ids=(1, 5, 8), seed=4, augment=False, occlusion=0.0)
+    with CropStream(StreamConfig(str(models), **kw)) as s:
+        base = s.batch(0)
+    with CropStream(StreamConfig(str(models), tabletop=1.0, **kw)) as s:
+        got = s.batch(0)
+    with CropStream(StreamConfig(str(models), tabletop=1.0, **kw)) as s:
+        again = s.batch(0)
+    for k in got:
+        np.testing.assert_array_equal(got[k], again[k])
+    for k in ("R", "t", "K", "delta_z", "obj_id"):
+        np.testing.assert_array_equal(got[k], base[k])
+    bg = (got["mask_visib"] == 0) & (base["mask_visib"] == 0)
+    assert np.mean(np.any(got["rgb"] != base["rgb"], axis=-1)[bg]) > 0.5
+    with pytest.raises(ValueError, match="tabletop"):
+        StreamConfig(str(models), tabletop=1.5)
+    with pytest.raises(ValueError, match="tabletop"):
+        apply_overrides(preset("tiny"), ["stream.tabletop=-0.1"])
+
+
 def _plate_and_ball(shadow_size: int = 256) -> Renderer:
     plate = trimesh.creation.box(extents=(400.0, 400.0, 4.0))
     plate.visual.face_colors = [200, 200, 200, 255]
@@ -319,17 +422,18 @@ def test_realism_options_reach_the_stream_from_the_config(models, tmp_path):
                                            "stream.resample=true", "stream.box_shift=0", "stream.box_scale=0.9,1.1",
                                            "stream.box_source=visible", "stream.object_gain=0.5,2",
                                            "stream.object_contrast=0.7,1.5", "stream.object_colour=0.8,1.25",
-                                           "stream.scene_backgrounds=0.5", "stream.shadows=0.25", "steps=2",
+                                           "stream.scene_backgrounds=0.5", "stream.shadows=0.25",
+                                           "stream.tabletop=0.5", "steps=2",
                                            "val_crops=0"])
     with pytest.raises(Stop):
         train(cfg, models, tmp_path / "a", workers=0, progress=False, verbose=False, data_fns=fns)
     keys = ("sensor", "distractors", "materials", "resample", "box_shift", "box_scale", "box_source", "object_gain",
-            "object_contrast", "object_colour", "scene_backgrounds", "shadows")
+            "object_contrast", "object_colour", "scene_backgrounds", "shadows", "tabletop")
     assert {k: seen[-1].get(k) for k in keys} == {"sensor": True, "distractors": 2, "materials": True, "resample": True,
                                                   "box_shift": 0.0, "box_scale": (0.9, 1.1), "box_source": "visible",
                                                   "object_gain": (0.5, 2.0), "object_contrast": (0.7, 1.5),
                                                   "object_colour": (0.8, 1.25),
-                                                  "scene_backgrounds": 0.5, "shadows": 0.25}
+                                                  "scene_backgrounds": 0.5, "shadows": 0.25, "tabletop": 0.5}
     with pytest.raises(Stop):
         train(apply_overrides(preset("tiny", steps=2, val_crops=0), ["stream.box_shift=none", "stream.box_scale=none"]),
               models, tmp_path / "b", workers=0, progress=False, verbose=False, data_fns=fns)

@@ -92,3 +92,139 @@ def clutter_scenes(
     finally:
         ren.close()
     return out
+
+
+#: The target's table (``StreamConfig.tabletop``): models and primitive shapes standing around it.
+TABLE_MODELS = (1, 4)
+TABLE_PRIMITIVES = (0, 2)
+#: The table's half extent, in target diameters, and its thickness in median diameters.
+TABLE_HALF = 8.0
+TABLE_THICKNESS = 0.02
+#: The table's colour: grey, its rendered shade (lights, shadows) to multiply a texture with
+#: (``textured_table``).
+TABLE_GREY = 0.75
+#: Neighbours stand this many target diameters apart from the target's bounding sphere, at most.
+TABLE_SPREAD = 1.5
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def table_under(rng: np.random.Generator, R: np.ndarray, t: np.ndarray,
+                vertices: np.ndarray) -> tuple[np.ndarray, float]:
+    """A table plane under an object posed (R, t) in the camera frame: ``(n, h)``, the plane's
+    unit normal (towards the camera side) and offset, the plane being {x: n.x = h}.
+
+    The normal is tilted TABLE_TILT_DEG from the direction from the object to the camera, turned
+    about it at random; the plane touches the object's lowest point along n (min of n.(R v + t)
+    over ``vertices`` equals h), so the object stands on it and the camera (the origin, n.0 = 0 >
+    h) sees its top side."""
+    d = -_unit(np.asarray(t, np.float64))
+    a = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a = _unit(a)
+    b = np.cross(d, a)
+    phi = rng.uniform(0, 2 * np.pi)
+    e = np.cos(phi) * a + np.sin(phi) * b
+    tilt = np.radians(rng.uniform(*TABLE_TILT_DEG))
+    n = np.cos(tilt) * d + np.sin(tilt) * e
+    h = float(np.min((vertices @ R.T + t) @ n))
+    return n, h
+
+
+def support(shape: str, size, R: np.ndarray, n: np.ndarray) -> float:
+    """How far a MuJoCo primitive (``shape``, ``size`` as :class:`~sc6d_jax.render.Primitive`
+    takes it, rotation R) reaches from its centre along the unit direction n: centred that far
+    above a plane of normal n, it rests on the plane."""
+    s = np.asarray(size, np.float64)
+    m = np.asarray(R, np.float64).T @ np.asarray(n, np.float64)  # n in the shape's frame
+    if shape == "box":
+        return float(np.abs(m) @ s)
+    if shape == "sphere":
+        return float(s[0])
+    if shape == "ellipsoid":
+        return float(np.linalg.norm(s * m))
+    if shape in ("cylinder", "capsule"):  # radius s[0], half length s[1] along the shape's z
+        c = abs(float(m[2]))
+        if shape == "capsule":
+            return float(c * s[1] + s[0])
+        return float(c * s[1] + s[0] * np.sqrt(max(0.0, 1.0 - c * c)))
+    raise ValueError(f"unknown primitive shape {shape!r}")
+
+
+def tabletop_around(
+    rng: np.random.Generator,
+    obj_id: int,
+    R: np.ndarray,
+    t: np.ndarray,
+    vertices: Mapping[int, np.ndarray],
+    radii: Mapping[int, float],
+    diameters: Mapping[int, float],
+    ids: list[int],
+    max_instances: int = 2,
+    near: float = 10.0,
+):
+    """The target ``obj_id`` at (R, t) standing on a table, with 1-4 other models and 0-2
+    primitive shapes standing on the same table around it: ``(table, objects, primitives)``, the
+    table a flat grey box :class:`~sc6d_jax.render.Primitive` (``textured_table`` gives its
+    rendered pixels a texture), ``objects`` a list of (obj_id, R, t) of
+    the neighbours (the target not included; at most ``max_instances`` of each id, the target's
+    own counting one), ``primitives`` the shapes. A pure function of ``rng``.
+
+    ``vertices``: obj_id -> points of the model (its hull's vertices will do); ``radii``: obj_id
+    -> the largest distance of a model point from the model's origin. Every neighbour rests on
+    the table (its lowest point on the plane) and its bounding sphere (about its origin) does not
+    meet the target's, so nothing intersects the target; a neighbour that would reach the near
+    plane is left out. Neighbours in front of the target may occlude it, as in a real scene.
+    """
+    from sc6d_jax.render import Primitive
+
+    R = np.asarray(R, np.float64)
+    t = np.asarray(t, np.float64)
+    n, h = table_under(rng, R, t, vertices[obj_id])
+    # the table's frame: z along -n (the box's top face at the plane), x and y in it
+    e1 = _unit(np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0]))
+    e2 = np.cross(n, e1)
+    foot = t - (float(t @ n) - h) * n  # the target's centre dropped onto the plane
+    d_t = float(diameters[obj_id])
+    d_med = float(np.median([diameters[i] for i in ids]))
+    thick = TABLE_THICKNESS * d_med
+    R_tab = np.stack([e1, -e2, -n], axis=1)  # columns: the box's axes (right-handed)
+    table = Primitive("box", (TABLE_HALF * d_t, TABLE_HALF * d_t, thick), (TABLE_GREY,) * 3, R_tab, foot - thick * n)
+    r_t = float(radii[obj_id])
+    objects, used = [], {obj_id: 1}
+    for _ in range(int(rng.integers(TABLE_MODELS[0], TABLE_MODELS[1] + 1))):
+        oid = int(ids[rng.integers(len(ids))])
+        R_o = random_rotation(rng)
+        ang = rng.uniform(0, 2 * np.pi)
+        dist = r_t + float(radii[oid]) + rng.uniform(0.0, TABLE_SPREAD) * d_t
+        on_plane = foot + dist * (np.cos(ang) * e1 + np.sin(ang) * e2)
+        lift = -float(np.min(vertices[oid] @ R_o.T @ n))  # its lowest point onto the plane
+        c = on_plane + lift * n
+        if used.get(oid, 0) >= max_instances or np.linalg.norm(c - t) < r_t + radii[oid] or c[2] - radii[oid] < near:
+            continue
+        used[oid] = used.get(oid, 0) + 1
+        objects.append((oid, R_o, c))
+    prims = []
+    for _ in range(int(rng.integers(TABLE_PRIMITIVES[0], TABLE_PRIMITIVES[1] + 1))):
+        s = rng.uniform(0.1, 0.4, 3) * d_med
+        shape = str(rng.choice(["box", "sphere", "cylinder", "ellipsoid"]))
+        R_p = random_rotation(rng)
+        r_p = float(np.linalg.norm(s))  # a sphere about the shape's centre that holds it
+        ang = rng.uniform(0, 2 * np.pi)
+        dist = r_t + r_p + rng.uniform(0.0, TABLE_SPREAD) * d_t
+        c = foot + dist * (np.cos(ang) * e1 + np.sin(ang) * e2) + support(shape, s, R_p, n) * n
+        if c[2] - r_p < near:
+            continue
+        prims.append(Primitive(shape, s, rng.uniform(0, 1, 3), R_p, c))
+    return table, objects, prims
+
+
+def textured_table(rgb: np.ndarray, table_px: np.ndarray, texture: np.ndarray) -> np.ndarray:
+    """``rgb`` with the pixels of a rendered TABLE_GREY table (``table_px``, bool (H, W)) replaced
+    by ``texture`` (uint8 (H, W, 3)) times the table's rendered shade (its pixel over TABLE_GREY
+    in [0, 255]): a textured table lit by the scene's lights, shadows included."""
+    out = rgb.copy()
+    shade = rgb[table_px].astype(np.float32) / np.float32(255.0 * TABLE_GREY)
+    out[table_px] = np.clip(texture[table_px].astype(np.float32) * shade + 0.5, 0, 255).astype(np.uint8)
+    return out

@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 
 from sc6d_jax.data._augment import camera_effects, colour_augment, random_background
+from sc6d_jax.data._clutter import TABLE_PRIMITIVES, tabletop_around, textured_table
 from sc6d_jax.data._scene import IMAGE_H, IMAGE_W, hull_vertices, random_rotation, sample_pose
 
 #: Resample a crop whose visible mask is below either bound (authors' code).
@@ -140,7 +141,15 @@ class StreamConfig:
             axis; the other lights come mostly from behind the camera, where the shadows fall
             out of sight). The shadow map covers SHADOW_REACH target diameters about the target.
             0 = off (and the renderer makes no shadow map).
-        These nine default to off (the streams of earlier runs are unchanged); they are the
+        tabletop: the probability that a crop's target stands on a rendered table with 1-4 other
+            models and 0-2 primitive shapes standing around it (``sc6d_jax.data._clutter.tabletop_around``),
+            all in the target's own render: one set of lights (and shadows, with ``shadows``), the
+            contact of the target with its surface, neighbours that may occlude it; the table
+            fills the crop below its horizon, the 2D background the rest. A pasted target
+            (the default) is lit apart from its surroundings and never touches them; in a
+            photograph it shares their light. Such a crop has no floating ``distractors``.
+            Scaled by the curriculum's difficulty, as the distractors are. 0 = off.
+        These ten default to off (the streams of earlier runs are unchanged); they are the
         stream's realism options for real test images (LM-O).
         image_border: the crop's pixels that lie outside the 640x480 image its pose was drawn in
             are black (after the colour augmentation) and not part of the visible mask, as in a
@@ -180,6 +189,7 @@ class StreamConfig:
     object_colour: tuple[float, float] | None = None
     scene_backgrounds: float = 0.0
     shadows: float = 0.0
+    tabletop: float = 0.0
     image_border: bool = False
 
     def __post_init__(self) -> None:
@@ -209,7 +219,7 @@ class StreamConfig:
 #: and the other options a training config passes on to the stream only when set: the one list
 #: that the training settings (``sc6d_jax.train.config.StreamSettings``) and loop follow.
 REALISM_OPTIONS = ("materials", "resample", "sensor", "distractors", "object_gain", "object_contrast",
-                   "object_colour", "scene_backgrounds", "shadows")
+                   "object_colour", "scene_backgrounds", "shadows", "tabletop")
 PASSED_WHEN_SET = (*REALISM_OPTIONS, "max_faces", "image_border")
 
 
@@ -217,7 +227,7 @@ def check_options(cfg, prefix: str = "") -> None:
     """Check (and normalise in place: ranges become float pairs) the :data:`PASSED_WHEN_SET`
     fields of ``cfg``, a StreamConfig or a training config's stream settings; the errors name each
     field as ``prefix + name``."""
-    for name in ("scene_backgrounds", "shadows"):
+    for name in ("scene_backgrounds", "shadows", "tabletop"):
         v = getattr(cfg, name)
         if not 0.0 <= v <= 1.0:
             raise ValueError(f"{prefix}{name} must be a probability in [0, 1], got {v!r}")
@@ -409,7 +419,9 @@ class _Worker:
             from sc6d_jax.render import simplify_mesh
 
             meshes = {i: simplify_mesh(m, cfg.max_faces) for i, m in meshes.items()}
-        self.renderer = Renderer(meshes, S, S, max_instances=2, n_primitives=2, n_lights=2,
+        self.radii = {i: float(np.linalg.norm(v, axis=1).max()) for i, v in self.vertices.items()}
+        n_prims = 2 + (1 + TABLE_PRIMITIVES[1] if cfg.tabletop > 0 else 0)  # occluders (+ table and shapes)
+        self.renderer = Renderer(meshes, S, S, max_instances=2, n_primitives=n_prims, n_lights=2,
                                  shadow_size=SHADOW_SIZE if cfg.shadows > 0 else 0)
         # A bank of procedural backgrounds (a function of the seed), varied per sample by
         # flips, a roll and a colour shift: 4x cheaper than drawing a new one per crop.
@@ -504,6 +516,7 @@ class _Worker:
         center = None
         objects = [(p.obj_id, p.R, p.t)]
         prims = []
+        table_slot = None  # the table's index in prims (tabletop)
         occluded = False
         if rng.random() < cfg.occlusion * difficulty:  # occluders between the camera and the target
             occluded = True
@@ -521,7 +534,17 @@ class _Worker:
                         Primitive(str(rng.choice(["box", "sphere", "cylinder", "ellipsoid"])), size,
                                   rng.uniform(0, 1, 3), random_rotation(rng), c)
                     )
-        if cfg.distractors and rng.random() < difficulty:  # clutter behind the target
+        if cfg.tabletop > 0 and rng.random() < cfg.tabletop * difficulty:  # no draw when off
+            # the target stands on a table among other models and shapes, all in this one render
+            table, around, shapes = tabletop_around(rng, p.obj_id, p.R, p.t, self.vertices, self.radii,
+                                                    self.diameters, self.all_ids, self.renderer.max_instances,
+                                                    self.renderer.near)
+            for o in around:
+                if sum(q[0] == o[0] for q in objects) < self.renderer.max_instances:
+                    objects.append(o)
+            table_slot = len(prims)
+            prims += [table, *shapes]
+        elif cfg.distractors and rng.random() < difficulty:  # clutter behind the target
             d_t = self.diameters[p.obj_id]
             for _ in range(rng.integers(1, cfg.distractors + 1)):
                 oid = int(self.all_ids[rng.integers(len(self.all_ids))])
@@ -568,6 +591,8 @@ class _Worker:
         if n_vis < MIN_VISIBLE_PX or n_vis < MIN_VISIBLE_FRACTION * S * S:
             return None
         rgb = out.rgb
+        if table_slot is not None:  # the table's shade times a texture (the crop's background)
+            rgb = textured_table(rgb, out.instance == len(objects) + table_slot, background)
         if cfg.object_gain is not None:  # the objects' exposure relative to their surroundings
             lo, hi = cfg.object_gain
             gain = float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
