@@ -128,7 +128,8 @@ def build_versions(dataset: Path, out: Path, seed: int) -> dict[str, Path]:
     return paths
 
 
-MASK_COLUMNS = ("version", "obj_id", "targets", "mask_iou_median", "mask_iou_under_half", "rot_own_gate_deg",
+MASK_COLUMNS = ("version", "obj_id", "targets", "mask_iou_median", "mask_iou_under_half", "mask_area_ratio_median",
+                "mask_recall_median", "rot_own_gate_deg",
                 "rot_gt_gate_deg", "rot_own_gate_on_gt_deg")
 
 
@@ -136,7 +137,8 @@ def mask_rows(run: str, dataset: Path, paths: dict[str, Path], obj_ids: list[int
               library_size: int | None) -> list[dict]:
     """The pose decoder's gate on each version: per target (ground-truth visible box, cut as
     ``sc6d predict`` cuts it), the network's predicted visible mask at S/4 against the rendered
-    ground-truth visible mask cut the same way (IoU at 0.5), and the median symmetry-aware
+    ground-truth visible mask cut the same way (IoU at 0.5; its area over the truth's, above 1
+    when the gate lets the surroundings in; the share of the truth it covers), and the median symmetry-aware
     rotation error (the best library match, made egocentric with the ground-truth translation)
     with three gates: the network's own, the ground-truth mask instead, and its own with the
     pixels off the ground-truth mask zeroed. Rows per version and object, and pooled (``all``).
@@ -214,7 +216,9 @@ def mask_rows(run: str, dataset: Path, paths: dict[str, Path], obj_ids: list[int
                         if mode == 0:
                             pred = np.asarray(logit) > 0.0
                             iou = float((pred & gt).sum() / max((pred | gt).sum(), 1))
-                    per[v].append((g.obj_id, iou, *errs))
+                            area = float(pred.sum() / max(gt.sum(), 1))
+                            recall = float((pred & gt).sum() / max(gt.sum(), 1))
+                    per[v].append((g.obj_id, iou, area, recall, *errs))
     finally:
         renderer.close()
     rows = []
@@ -225,9 +229,11 @@ def mask_rows(run: str, dataset: Path, paths: dict[str, Path], obj_ids: list[int
             rows.append({"version": v, "obj_id": oid, "targets": len(sel),
                          "mask_iou_median": float(np.median(sel[:, 0])),
                          "mask_iou_under_half": float(np.mean(sel[:, 0] < 0.5)),
-                         "rot_own_gate_deg": float(np.median(sel[:, 1])),
-                         "rot_gt_gate_deg": float(np.median(sel[:, 2])),
-                         "rot_own_gate_on_gt_deg": float(np.median(sel[:, 3]))})
+                         "mask_area_ratio_median": float(np.median(sel[:, 1])),
+                         "mask_recall_median": float(np.median(sel[:, 2])),
+                         "rot_own_gate_deg": float(np.median(sel[:, 3])),
+                         "rot_gt_gate_deg": float(np.median(sel[:, 4])),
+                         "rot_own_gate_on_gt_deg": float(np.median(sel[:, 5]))})
     return rows
 
 
@@ -283,11 +289,12 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError as e:
             print(f"lmo_gap: error: {e}", file=sys.stderr)
             return 2
-        print(f"{'version':>23} {'obj':>4} {'n':>4} {'IoU':>6} {'<0.5':>6} {'rot own':>8} {'GT gate':>8} {'own*GT':>8}")
+        print(f"{'version':>23} {'obj':>4} {'n':>4} {'IoU':>6} {'<0.5':>6} {'area':>6} {'recall':>6} "
+              f"{'rot own':>8} {'GT gate':>8} {'own*GT':>8}")
         for r in mrows:
             print(f"{r['version']:>23} {r['obj_id']:>4} {r['targets']:>4} {r['mask_iou_median']:6.3f} "
-                  f"{r['mask_iou_under_half']:6.2f} {r['rot_own_gate_deg']:8.1f} {r['rot_gt_gate_deg']:8.1f} "
-                  f"{r['rot_own_gate_on_gt_deg']:8.1f}")
+                  f"{r['mask_iou_under_half']:6.2f} {r['mask_area_ratio_median']:6.2f} {r['mask_recall_median']:6.2f} "
+                  f"{r['rot_own_gate_deg']:8.1f} {r['rot_gt_gate_deg']:8.1f} {r['rot_own_gate_on_gt_deg']:8.1f}")
         write_csv(a.out / "masks.csv", mrows, MASK_COLUMNS)
         print(f"lmo_gap: wrote {a.out / 'masks.csv'}")
     return 0

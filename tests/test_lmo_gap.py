@@ -90,8 +90,10 @@ def test_masks_measure_the_gate_on_every_version(photos, tmp_path, capsys):
     for r in rows:
         assert int(r["targets"]) >= 1
         assert 0.0 <= float(r["mask_iou_under_half"]) <= 1.0
+        assert 0.0 <= float(r["mask_recall_median"]) <= 1.0 and float(r["mask_area_ratio_median"]) > 0.0
         for k in ("rot_own_gate_deg", "rot_gt_gate_deg", "rot_own_gate_on_gt_deg"):
             assert 0.0 <= float(r[k]) <= 180.0
     assert float(pooled["rendered"]["mask_iou_median"]) > 0.5
+    assert float(pooled["rendered"]["mask_recall_median"]) >= float(pooled["rendered"]["mask_iou_median"])
     assert float(pooled["real"]["mask_iou_median"]) > 0.5  # here the "photographs" are renders too
     assert "masks.csv" in capsys.readouterr().out
