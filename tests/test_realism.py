@@ -309,14 +309,13 @@ def test_tabletop_stands_the_target_and_its_neighbours_on_one_table(models):
 def test_stream_tabletop_keeps_the_labels_and_is_deterministic(models):
     """tabletop=1: the same poses and labels as without (the scene is drawn after them), other
     pixels around the target, batches a pure function of the seed; bad values are refused."""
-    S = 48
-    kw = dict(crop_size=S, batch_size=8, workers=0, obj_ids=(1, 5, 8), seed=4, augment=False, occlusion=0.0)
-    with CropStream(StreamConfig(str(models), **kw)) as s:
-        base = s.batch(0)
-    with CropStream(StreamConfig(str(models), tabletop=1.0, **kw)) as s:
-        got = s.batch(0)
-    with CropStream(StreamConfig(str(models), tabletop=1.0, **kw)) as s:
-        again = s.batch(0)
+    def first_batch(**opts):
+        cfg = StreamConfig(str(models), crop_size=48, batch_size=8, workers=0, obj_ids=(1, 5, 8), seed=4,
+                           augment=False, occlusion=0.0, **opts)
+        with CropStream(cfg) as s:
+            return s.batch(0)
+
+    base, got, again = first_batch(), first_batch(tabletop=1.0), first_batch(tabletop=1.0)
     for k in got:
         np.testing.assert_array_equal(got[k], again[k])
     for k in ("R", "t", "K", "delta_z", "obj_id"):
