@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -306,15 +308,17 @@ def test_a_dead_worker_is_replaced_and_the_stream_goes_on(models, capsys):
             os.kill(pid, signal.SIGKILL)
         got += [next(s) for _ in range(3)]
         assert s._restarts == 0
-        assert "a render worker died at batch 1" in capsys.readouterr().err
+        # the first batch the kill caught: 1, or a later one when those in flight were done before it
+        assert re.search(r"a render worker died at batch [123] ", capsys.readouterr().err)
         for w, g in zip(want, got):
             for k in w:
                 np.testing.assert_array_equal(w[k], g[k])
         s._restarts = _stream.MAX_WORKER_RESTARTS  # as if it had died that often already
         for pid in list(s._pool._processes):
             os.kill(pid, signal.SIGKILL)
-        with pytest.raises(RuntimeError, match="render workers died 4 times in a row at batch 4"):
-            next(s)
+        with pytest.raises(RuntimeError, match=r"render workers died 4 times in a row at batch [456]"):
+            for _ in range(3):  # 4 and 5 in flight: one done before the kill still comes back
+                next(s)
 
 
 def test_workers_end_with_a_killed_parent(models, tmp_path):
