@@ -39,7 +39,6 @@ gate rescues a version's rotations, the mask is the cause; if not, the features 
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import sys
 from pathlib import Path
@@ -50,7 +49,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "experiments"))
 
-from learning_curve import BREAKDOWN_COLUMNS, dataset_rows, run_scores  # noqa: E402
+from learning_curve import BREAKDOWN_COLUMNS, _write_csv, dataset_rows, run_scores  # noqa: E402
 
 VERSIONS = ("real", "real_objects", "rendered_objects", "rendered", "real_objects_recoloured", "rendered_recoloured")
 COLUMNS = ("version", "obj_id", "targets", "ar", "ar_mssd", "ar_mspd", *BREAKDOWN_COLUMNS)
@@ -129,8 +128,7 @@ def build_versions(dataset: Path, out: Path, seed: int) -> dict[str, Path]:
 
 
 MASK_COLUMNS = ("version", "obj_id", "targets", "mask_iou_median", "mask_iou_under_half", "mask_area_ratio_median",
-                "mask_recall_median", "rot_own_gate_deg",
-                "rot_gt_gate_deg", "rot_own_gate_on_gt_deg")
+                "mask_recall_median", "rot_own_gate_deg", "rot_gt_gate_deg", "rot_own_gate_on_gt_deg")
 
 
 def mask_rows(run: str, dataset: Path, paths: dict[str, Path], obj_ids: list[int] | None,
@@ -172,15 +170,17 @@ def mask_rows(run: str, dataset: Path, paths: dict[str, Path], obj_ids: list[int
     blocks, n_valid = est.packed_library()
     lib_R = np.asarray(est.library.R)
 
-    def rot_index(p, rgb, pe, oi, gt_mask, mode: int):  # mode 0: own gate, 1: GT mask, 2: own x GT
+    def gates(p, rgb, pe, oi, gt_mask):
+        """The mask logit and the best library index with the own gate, the GT mask, own x GT."""
         out = apply(p, mcfg, rgb, pe, oi)
-        if mode:
-            gate = gt_mask if mode == 1 else jax.nn.sigmoid(out["mask_logit"]) * gt_mask
-            out = apply(p, mcfg, rgb, pe, oi, teacher_gate=(gate, jnp.ones((rgb.shape[0],), bool)))
-        m = match_library(p["rot_head"], mcfg.rot_head, out["rot_emb"], blocks, n_valid, 1, est.tau, False, oi)
-        return out["mask_logit"], m.index[:, 0]
+        on = jnp.ones((rgb.shape[0],), bool)
+        embs = [out["rot_emb"]] + [apply(p, mcfg, rgb, pe, oi, teacher_gate=(g, on))["rot_emb"]
+                                   for g in (gt_mask, jax.nn.sigmoid(out["mask_logit"]) * gt_mask)]
+        ix = [match_library(p["rot_head"], mcfg.rot_head, e, blocks, n_valid, 1, est.tau, False, oi).index[:, 0]
+              for e in embs]
+        return out["mask_logit"], ix
 
-    fwd = jax.jit(rot_index, static_argnums=5)
+    fwd = jax.jit(gates)
     versions = {v: BopDataset(paths[v]) for v in VERSIONS}
     per: dict[str, list[tuple[int, float, float, float, float]]] = {v: [] for v in VERSIONS}
     renderer = Renderer({i: load_mesh(model_path(dataset / "models", i)) for i in ids}, w, h,
@@ -207,17 +207,16 @@ def mask_rows(run: str, dataset: Path, paths: dict[str, Path], obj_ids: list[int
                         gt = m.reshape(1, S // 4, 4, S // 4, 4).mean(axis=(2, 4)) > 0.5
                     pe = pe_map(jnp.asarray(K[None], jnp.float32), jnp.asarray(T, jnp.float32), S)
                     pe = pe if mcfg.use_pe else None
+                    logit, ixs = fwd(est.params, jnp.asarray(crops), pe, oi, jnp.asarray(gt, jnp.float32))
                     errs = []
-                    for mode in (0, 1, 2):
-                        logit, ix = fwd(est.params, jnp.asarray(crops), pe, oi, jnp.asarray(gt, jnp.float32), mode)
+                    for ix in ixs:  # own gate, GT mask, own x GT
                         R = np.asarray(allocentric_to_egocentric(jnp.asarray(lib_R[int(ix[0])]),
                                                                  jnp.asarray(g.t, jnp.float32)))
                         errs.append(rotation_error_deg(R, g.R, syms.get(g.obj_id)))
-                        if mode == 0:
-                            pred = np.asarray(logit) > 0.0
-                            iou = float((pred & gt).sum() / max((pred | gt).sum(), 1))
-                            area = float(pred.sum() / max(gt.sum(), 1))
-                            recall = float((pred & gt).sum() / max(gt.sum(), 1))
+                    pred = np.asarray(logit) > 0.0
+                    iou = float((pred & gt).sum() / max((pred | gt).sum(), 1))
+                    area = float(pred.sum() / max(gt.sum(), 1))
+                    recall = float((pred & gt).sum() / max(gt.sum(), 1))
                     per[v].append((g.obj_id, iou, area, recall, *errs))
     finally:
         renderer.close()
@@ -235,15 +234,6 @@ def mask_rows(run: str, dataset: Path, paths: dict[str, Path], obj_ids: list[int
                          "rot_gt_gate_deg": float(np.median(sel[:, 4])),
                          "rot_own_gate_on_gt_deg": float(np.median(sel[:, 5]))})
     return rows
-
-
-def write_csv(path: Path, rows: list[dict], columns) -> None:
-    tmp = path.with_suffix(".tmp")
-    with open(tmp, "w", newline="") as f:
-        wr = csv.DictWriter(f, fieldnames=columns, extrasaction="ignore")
-        wr.writeheader()
-        wr.writerows(rows)
-    tmp.replace(path)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -281,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
         rot, dep, cen = r.get("rot_median_deg"), r.get("depth_rel_median"), r.get("centre_median_px")
         print(f"{r['version']:>23} {r['obj_id']:>4} {r['targets']:>4} {r['ar']:6.3f} {r['ar_mssd']:6.3f} "
               f"{r['ar_mspd']:6.3f} " + (f"{rot:7.1f} {100 * dep:6.1f}% {cen:7.1f}" if rot is not None else ""))
-    write_csv(a.out / "gap.csv", rows, COLUMNS)
+    _write_csv(a.out / "gap.csv", rows, COLUMNS)
     print(f"lmo_gap: wrote {a.out / 'gap.csv'}")
     if a.masks:
         try:
@@ -295,7 +285,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{r['version']:>23} {r['obj_id']:>4} {r['targets']:>4} {r['mask_iou_median']:6.3f} "
                   f"{r['mask_iou_under_half']:6.2f} {r['mask_area_ratio_median']:6.2f} {r['mask_recall_median']:6.2f} "
                   f"{r['rot_own_gate_deg']:8.1f} {r['rot_gt_gate_deg']:8.1f} {r['rot_own_gate_on_gt_deg']:8.1f}")
-        write_csv(a.out / "masks.csv", mrows, MASK_COLUMNS)
+        _write_csv(a.out / "masks.csv", mrows, MASK_COLUMNS)
         print(f"lmo_gap: wrote {a.out / 'masks.csv'}")
     return 0
 
