@@ -20,6 +20,8 @@ from sc6d_jax.data._scene import random_rotation
 
 __all__ = ["clutter_scenes"]
 
+#: The primitive shapes drawn as clutter and occluders (the stream's and these scenes').
+DISTRACTOR_SHAPES = ("box", "sphere", "cylinder", "ellipsoid")
 #: Models and primitives per scene.
 N_MODELS = (6, 14)
 N_PRIMITIVES = (2, 5)
@@ -80,7 +82,7 @@ def clutter_scenes(
             for _ in range(int(rng.integers(N_PRIMITIVES[0], N_PRIMITIVES[1] + 1))):
                 s = rng.uniform(0.1, 0.4, 3) * d_med
                 u, v = rng.uniform(-spread, spread, 2)
-                prims.append(Primitive(str(rng.choice(["box", "sphere", "cylinder", "ellipsoid"])), s,
+                prims.append(Primitive(str(rng.choice(DISTRACTOR_SHAPES)), s,
                                        rng.uniform(0, 1, 3), random_rotation(rng),
                                        centre + u * e1 + v * e2 + 0.5 * float(s.max()) * nrm))
             lights = [Light(direction=rng.normal(size=3) + np.array([0, 0, 1.5]), diffuse=rng.uniform(0.2, 0.7),
@@ -208,7 +210,7 @@ def tabletop_around(
     prims = []
     for _ in range(int(rng.integers(TABLE_PRIMITIVES[0], TABLE_PRIMITIVES[1] + 1))):
         s = rng.uniform(0.1, 0.4, 3) * d_med
-        shape = str(rng.choice(["box", "sphere", "cylinder", "ellipsoid"]))
+        shape = str(rng.choice(DISTRACTOR_SHAPES))
         R_p = random_rotation(rng)
         r_p = float(np.linalg.norm(s))  # a sphere about the shape's centre that holds it
         ang = rng.uniform(0, 2 * np.pi)

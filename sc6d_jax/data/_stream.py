@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 
 from sc6d_jax.data._augment import camera_effects, colour_augment, random_background
-from sc6d_jax.data._clutter import TABLE_PRIMITIVES, tabletop_around, textured_table
+from sc6d_jax.data._clutter import DISTRACTOR_SHAPES, TABLE_PRIMITIVES, tabletop_around, textured_table
 from sc6d_jax.data._scene import IMAGE_H, IMAGE_W, hull_vertices, random_rotation, sample_pose
 
 #: Resample a crop whose visible mask is below either bound (authors' code).
@@ -531,7 +531,7 @@ class _Worker:
                 else:
                     size = rng.uniform(0.08, 0.3, 3) * self.diameters[p.obj_id]
                     prims.append(
-                        Primitive(str(rng.choice(["box", "sphere", "cylinder", "ellipsoid"])), size,
+                        Primitive(str(rng.choice(DISTRACTOR_SHAPES)), size,
                                   rng.uniform(0, 1, 3), random_rotation(rng), c)
                     )
         if cfg.tabletop > 0 and rng.random() < cfg.tabletop * difficulty:  # no draw when off
