@@ -165,6 +165,7 @@ def tabletop_around(
     ids: list[int],
     max_instances: int = 2,
     near: float = 10.0,
+    gap: tuple[float, float] | None = None,
 ):
     """The target ``obj_id`` at (R, t) standing on a table, with 1-4 other models and 0-2
     primitive shapes standing on the same table around it: ``(table, objects, primitives)``, the
@@ -178,6 +179,13 @@ def tabletop_around(
     the table (its lowest point on the plane) and its bounding sphere (about its origin) does not
     meet the target's, so nothing intersects the target; a neighbour that would reach the near
     plane is left out. Neighbours in front of the target may occlude it, as in a real scene.
+
+    ``gap``: ``(low, high)`` in target diameters: each neighbour stands instead that far (uniform)
+    from the target along its direction in the table's plane, measured between the two shapes'
+    extents along that direction (their support functions over ``vertices``), so that the
+    plane perpendicular to it separates them: touching at 0, never intersecting. Photographed
+    clutter touches and hides the target; bounding spheres keep every neighbour apart by the
+    target's largest radius or more (None, the default). The same draws either way.
     """
     from sc6d_jax.render import Primitive
 
@@ -194,16 +202,22 @@ def tabletop_around(
     R_tab = np.stack([e1, -e2, -n], axis=1)  # columns: the box's axes (right-handed)
     table = Primitive("box", (TABLE_HALF * d_t, TABLE_HALF * d_t, thick), (TABLE_GREY,) * 3, R_tab, foot - thick * n)
     r_t = float(radii[obj_id])
+    target_v = vertices[obj_id] @ R.T  # the target's points about its centre, camera axes
     objects, used = [], {obj_id: 1}
     for _ in range(int(rng.integers(TABLE_MODELS[0], TABLE_MODELS[1] + 1))):
         oid = int(ids[rng.integers(len(ids))])
         R_o = random_rotation(rng)
         ang = rng.uniform(0, 2 * np.pi)
-        dist = r_t + float(radii[oid]) + rng.uniform(0.0, TABLE_SPREAD) * d_t
-        on_plane = foot + dist * (np.cos(ang) * e1 + np.sin(ang) * e2)
+        u = np.cos(ang) * e1 + np.sin(ang) * e2
+        if gap is None:
+            dist = r_t + float(radii[oid]) + rng.uniform(0.0, TABLE_SPREAD) * d_t
+        else:  # separated along u: the target's extent along u, the neighbour's along -u, the gap
+            dist = (float(np.max(target_v @ u)) + float(np.max(-(vertices[oid] @ R_o.T) @ u))
+                    + rng.uniform(*gap) * d_t)
         lift = -float(np.min(vertices[oid] @ R_o.T @ n))  # its lowest point onto the plane
-        c = on_plane + lift * n
-        if used.get(oid, 0) >= max_instances or np.linalg.norm(c - t) < r_t + radii[oid] or c[2] - radii[oid] < near:
+        c = foot + dist * u + lift * n
+        apart = gap is not None or np.linalg.norm(c - t) >= r_t + radii[oid]
+        if used.get(oid, 0) >= max_instances or not apart or c[2] - radii[oid] < near:
             continue
         used[oid] = used.get(oid, 0) + 1
         objects.append((oid, R_o, c))
@@ -214,8 +228,12 @@ def tabletop_around(
         R_p = random_rotation(rng)
         r_p = float(np.linalg.norm(s))  # a sphere about the shape's centre that holds it
         ang = rng.uniform(0, 2 * np.pi)
-        dist = r_t + r_p + rng.uniform(0.0, TABLE_SPREAD) * d_t
-        c = foot + dist * (np.cos(ang) * e1 + np.sin(ang) * e2) + support(shape, s, R_p, n) * n
+        u = np.cos(ang) * e1 + np.sin(ang) * e2
+        if gap is None:
+            dist = r_t + r_p + rng.uniform(0.0, TABLE_SPREAD) * d_t
+        else:
+            dist = float(np.max(target_v @ u)) + support(shape, s, R_p, u) + rng.uniform(*gap) * d_t
+        c = foot + dist * u + support(shape, s, R_p, n) * n
         if c[2] - r_p < near:
             continue
         prims.append(Primitive(shape, s, rng.uniform(0, 1, 3), R_p, c))
