@@ -49,6 +49,29 @@ def test_normals_and_relative_depth_of_a_tilted_plane():
     np.testing.assert_allclose(dense2[0, 3, 3, :3], Rz @ n, atol=1e-4)
 
 
+def test_object_frame_points_of_a_plane():
+    """xyz=True: three more channels, R^T (P - t) / diameter of the visible points (block means);
+    the first four are unchanged; a turned object gives the same points turned back."""
+    S = 32
+    K = np.array([[60.0, 0, 15.5], [0, 60.0, 15.5], [0, 0, 1]])
+    depth = np.full((1, S, S), 500.0)
+    mask = np.ones((1, S, S), np.uint8)
+    t = np.array([[10.0, -20.0, 480.0]])
+    eye = np.eye(3)[None]
+    dense4, _ = dense_targets(depth, mask, K[None], eye, eye, t, np.array([100.0]))
+    Rz = np.asarray(G.rot_z(0.3))
+    dense, w = dense_targets(depth, mask, K[None], Rz[None], eye, t, np.array([100.0]), xyz=True)
+    assert dense.shape == (1, 8, 8, 7)
+    np.testing.assert_allclose(dense[..., 3], dense4[..., 3], atol=1e-6)
+    v, u = np.mgrid[0:S, 0:S].astype(np.float64)
+    P = np.stack([(u - 15.5) / 60 * 500, (v - 15.5) / 60 * 500, np.full_like(u, 500.0)], -1) - t[0]
+    obj = (P @ Rz) / 100.0  # R^T p for each row p
+    # an inner block (all 16 pixels weighted): the mean of its pixels' points
+    np.testing.assert_allclose(dense[0, 3, 4, 4:], obj[12:16, 16:20].reshape(-1, 3).mean(0), atol=1e-4)
+    np.testing.assert_allclose(dense[0, 3, 4, 4:] @ Rz.T * 100 + t[0], [P[12:16, 16:20, i].mean() + t[0, i] for i in range(3)],
+                               atol=1e-3)
+
+
 def test_no_target_means_zero_weight_and_zero_target():
     S = 16
     K = np.array([[40.0, 0, 7.5], [0, 40.0, 7.5], [0, 0, 1]])
@@ -91,6 +114,19 @@ def test_stream_dense_targets_follow_the_crop(models):
         turned = np.rot90(d[j], -k).copy()
         turned[..., :3] = turned[..., :3] @ D.T
         np.testing.assert_allclose(aug["dense"][j], turned, atol=1e-5)
+    # object-frame points: three more channels that turn with the crop's pixels, not their values
+    with CropStream(StreamConfig(str(models), augment=False, dense=True, dense_xyz=True, **kw)) as s:
+        plain7 = s.batch(2)
+    with CropStream(StreamConfig(str(models), augment=True, dense=True, dense_xyz=True, **kw)) as s:
+        aug7 = s.batch(2)
+    np.testing.assert_array_equal(plain7["dense"][..., :4], d)
+    assert np.abs(plain7["dense"][..., 4:][w > 0]).max() <= 0.5 + 1e-3  # within the radius: diameter / 2
+    for j in range(6):
+        D = aug7["R_allo"][j] @ plain7["R_allo"][j].T
+        k = int(np.round(np.arctan2(D[1, 0], D[0, 0]) / (np.pi / 2))) % 4
+        np.testing.assert_allclose(aug7["dense"][j][..., 4:], np.rot90(plain7["dense"][j][..., 4:], -k), atol=1e-6)
+    with pytest.raises(ValueError, match="dense_xyz"):
+        StreamConfig(str(models), dense_xyz=True)
 
 
 def test_dense_loss_trains_the_head_and_checks_its_inputs():
@@ -127,6 +163,21 @@ def test_dense_loss_trains_the_head_and_checks_its_inputs():
     with pytest.raises(ValueError, match="dense_head"):
         model.loss_fn(model.init(jax.random.PRNGKey(0), dataclasses.replace(mcfg, dense_head=False)),
                       dataclasses.replace(mcfg, dense_head=False), lcfg, batch, key, (1.0, 2.0))
+
+    # object-frame points: three more head channels, their own term and weight
+    mxyz = dataclasses.replace(mcfg, dense_xyz=True)
+    lxyz = dataclasses.replace(lcfg, w_dense=0.0, w_dense_xyz=2.0)
+    p7 = model.init(jax.random.PRNGKey(0), mxyz)
+    b7 = dict(batch, dense=np.concatenate([batch["dense"], rng.normal(size=(b, 8, 8, 3)).astype(np.float32)], -1))
+    (loss7, aux7), g7 = jax.value_and_grad(lambda p: model.loss_fn(p, mxyz, lxyz, b7, key, (1.0, 2.0)), has_aux=True)(p7)
+    assert "loss_dense" not in aux7 and float(aux7["loss_dense_xyz"]) > 0
+    total7 = sum(getattr(lxyz, "w_" + k) * float(aux7["loss_" + k]) for k in ("rot", "xy", "z", "mask", "dense_xyz"))
+    np.testing.assert_allclose(float(loss7), total7, rtol=1e-5)
+    assert float(jnp.abs(g7["dense_head"]["w"][:, 4:]).sum()) > 0 and float(jnp.abs(g7["dense_head"]["w"][:, :4]).sum()) == 0
+    with pytest.raises(ValueError, match="dense_xyz=True"):
+        model.loss_fn(params, mcfg, lxyz, b7, key, (1.0, 2.0))
+    with pytest.raises(ValueError, match="dense_head=True"):
+        model.ModelConfig(n_objects=1, dense_xyz=True)
 
 
 def test_optional_heads_leave_the_other_parameters_unchanged():

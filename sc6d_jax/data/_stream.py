@@ -97,6 +97,9 @@ class StreamConfig:
             surface at S/4 (``dense_targets``): its normals in the allocentric frame of the
             rotation label and its depth relative to the object centre in diameters. They
             need no symmetry labels (they describe what the crop shows).
+        dense_xyz: with ``dense``, three more channels: the visible surface's points in the
+            object's own frame (``dense_targets(xyz=True)``); ambiguous for a symmetric
+            object, as any object-frame target is.
         curriculum: number of batches over which the task grows from easy to the full setting
             (0 = full from the start). At batch b the difficulty is d = min(1, b / curriculum):
             a crop gets a textured background with probability d (else a plain one) and
@@ -185,6 +188,7 @@ class StreamConfig:
     background: str = "textured"
     curriculum: int = 0
     dense: bool = False
+    dense_xyz: bool = False
     materials: bool = False
     resample: bool = False
     sensor: bool = False
@@ -202,6 +206,8 @@ class StreamConfig:
     def __post_init__(self) -> None:
         check_options(self)
         object.__setattr__(self, "placement", unit_range(self.placement, "placement"))
+        if self.dense_xyz and not self.dense:
+            raise ValueError("dense_xyz adds channels to the dense targets: it needs dense=True")
         if self.background not in ("textured", "plain"):
             raise ValueError(f"background must be 'textured' or 'plain', got {self.background!r}")
         if self.box_source not in ("amodal", "visible"):
@@ -330,7 +336,7 @@ def derive_seed(seed: int, tag: int) -> int:
 
 def dense_targets(
     depth: np.ndarray, mask: np.ndarray, K_B: np.ndarray, R: np.ndarray, R_allo: np.ndarray, t: np.ndarray,
-    diameter: np.ndarray, factor: int = 4,
+    diameter: np.ndarray, factor: int = 4, xyz: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Dense targets of the target's visible surface, averaged over ``factor`` x ``factor`` blocks.
 
@@ -340,7 +346,9 @@ def dense_targets(
     the back-projected depth's central differences, turned into the allocentric frame of the
     rotation label, facing the camera) and (depth - t_z) / diameter; and ``weight`` float32
     (B,S/f,S/f): the fraction of each block's pixels where the target and its four neighbours are
-    visible (0 = no target there; the normal is then 0).
+    visible (0 = no target there; the normal is then 0). With ``xyz``, three more channels: the
+    surface's points in the object's own frame, R^T (P - t) / diameter (block means): what
+    tells a nearly symmetric object's turned copies apart, unlike the view-frame normals.
     """
     depth = np.asarray(depth, np.float32)
     B, S, _ = depth.shape
@@ -378,7 +386,13 @@ def dense_targets(
     to_allo = np.einsum("bij,bkj->bik", R_allo, R).astype(np.float32)
     n_avg = np.einsum("bij,bhwj->bhwi", to_allo, n_avg)
     rel_avg = blocks(rel * w) / np.maximum(wsum, 1e-12)
-    dense = np.concatenate([n_avg, rel_avg[..., None]], axis=-1)
+    parts = [n_avg, rel_avg[..., None]]
+    if xyz:  # camera frame -> the object's frame, about its origin, in diameters
+        P = np.stack([X, Y, depth], axis=-1) - t[:, None, None, :].astype(np.float32)
+        P = np.einsum("bji,bhwj->bhwi", np.asarray(R, np.float32), P)
+        P /= np.asarray(diameter, np.float32)[:, None, None, None]
+        parts.append(blocks(P * w[..., None]) / np.maximum(wsum, 1e-12)[..., None])
+    dense = np.concatenate(parts, axis=-1)
     dense[wsum == 0] = 0.0
     return dense.astype(np.float32), (wsum / (f * f)).astype(np.float32)
 
@@ -655,7 +669,8 @@ class _Worker:
         dense = dense_w = None
         if cfg.dense:
             dense, dense_w = dense_targets(
-                np.stack(depths), mask, T @ K, R, R_allo, t, np.array([self.diameters[p.obj_id] for p in poses])
+                np.stack(depths), mask, T @ K, R, R_allo, t, np.array([self.diameters[p.obj_id] for p in poses]),
+                xyz=cfg.dense_xyz,
             )
         outside = ~inside_image(T, S) if cfg.image_border else None
         if outside is not None and not cfg.augment:

@@ -49,6 +49,11 @@ class ModelConfig:
       (``out["dense"]`` (B,S/4,S/4,4)), trained by ``LossConfig.w_dense`` against the stream's
       ``dense`` targets: geometry supervision for the features the pose decoder reads, which
       needs no symmetry labels. Not used at inference.
+    - dense_xyz: the dense head also predicts the visible surface's points in the object's own
+      frame (3 more channels, ``out["dense"]`` (B,S/4,S/4,7)), trained by
+      ``LossConfig.w_dense_xyz``: object coordinates tell the small parts that break a nearly
+      symmetric object's symmetry (the dumbbell's cube) by where they are, pixel by pixel.
+      Needs dense_head. Not used at inference.
     - gn_groups: maximum GroupNorm groups (32; fewer when channels are few).
     - mask_gate: multiply the decoder features by sigmoid(mask logit) before the pose decoder,
       so that clutter and occluders reach the heads damped by the predicted visible mask
@@ -111,6 +116,7 @@ class ModelConfig:
     ipdf_pe_freqs: int = 0
     so3_pe_freqs: int = 0
     dense_head: bool = False
+    dense_xyz: bool = False
     gn_groups: int = 32
     mask_gate: bool = False
     z_size_input: bool = False
@@ -145,6 +151,8 @@ class ModelConfig:
             raise ValueError("z_scale_input needs use_pe=True (the crop's angular size is read off the PE map)")
         if self.decoder_width < 0 or self.ipdf_pe_freqs < 0 or self.so3_pe_freqs < 0:
             raise ValueError("decoder_width, ipdf_pe_freqs and so3_pe_freqs must be >= 0")
+        if self.dense_xyz and not self.dense_head:
+            raise ValueError("dense_xyz adds channels to the dense head: it needs dense_head=True")
 
     @property
     def in_channels(self) -> int:

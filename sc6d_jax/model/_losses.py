@@ -107,6 +107,8 @@ class LossConfig:
     - w_dense: weight of the dense geometry loss (needs ``ModelConfig.dense_head`` and the
       stream's ``dense`` / ``dense_w`` targets): L1 of the normal and the relative depth over
       the visible blocks, weighted by their visible fraction (0 = off, paper).
+    - w_dense_xyz: weight of the L1 of the object-frame surface points (``ModelConfig.dense_xyz``
+      and the stream's ``dense_xyz`` targets), over the same blocks (0 = off).
     - mask_downsample: "area" (default: the S x S visible mask averaged over 4x4 blocks, a
       soft target in [0, 1]) or "nearest" (every 4th pixel, offset 2: a binary target).
     """
@@ -132,6 +134,7 @@ class LossConfig:
     local_min_deg: float = 2.0
     local_max_deg: float = 30.0
     w_dense: float = 0.0
+    w_dense_xyz: float = 0.0
     teacher_gate: bool = False
     turn_negatives: bool = False
     n_axis_negatives: int = 0
@@ -170,7 +173,7 @@ class LossConfig:
             raise ValueError(f"tau must be > 0, got {self.tau}")
         if not isinstance(self.n_negatives, int) or self.n_negatives < 1:
             raise ValueError(f"n_negatives must be a positive int, got {self.n_negatives!r}")
-        for name in ("w_rot", "w_xy", "w_z", "w_mask", "w_z_l1", "w_dense", "w_rot_readout", "focal_alpha",
+        for name in ("w_rot", "w_xy", "w_z", "w_mask", "w_z_l1", "w_dense", "w_dense_xyz", "w_rot_readout", "focal_alpha",
                      "focal_gamma", "z_rot_noise_deg"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
@@ -386,8 +389,8 @@ def loss_fn(
     _check_batch(mcfg, batch)
     if lcfg.z_norm != "none" and "K" not in batch:
         raise ValueError("z_norm='focal' needs the image intrinsics K (batch['K'])")
-    if lcfg.w_dense > 0:
-        _check_dense(mcfg, batch)
+    if lcfg.w_dense > 0 or lcfg.w_dense_xyz > 0:
+        _check_dense(mcfg, lcfg, batch)
     if lcfg.w_rot_readout > 0 and not mcfg.rot_readout:
         raise ValueError("loss.w_rot_readout > 0 needs a model with model.rot_readout=True")
     d_lo, d_hi = z_range
@@ -448,8 +451,11 @@ def loss_fn(
     if "loss_z_prior" in extra:
         loss = loss + lcfg.w_z * extra["loss_z_prior"]
     if lcfg.w_dense > 0:
-        extra["loss_dense"] = dense_loss(out, batch)
+        extra["loss_dense"] = dense_loss(out, batch, slice(0, 4))
         loss = loss + lcfg.w_dense * extra["loss_dense"]
+    if lcfg.w_dense_xyz > 0:
+        extra["loss_dense_xyz"] = dense_loss(out, batch, slice(4, 7))
+        loss = loss + lcfg.w_dense_xyz * extra["loss_dense_xyz"]
     if lcfg.w_rot_readout > 0:
         want = jnp.swapaxes(R_gt[:, :, :2], 1, 2).reshape(R_gt.shape[0], 6)  # the two columns, one after the other
         extra["loss_rot_readout"] = jnp.mean(jnp.sum(jnp.square(out["rot_6d"] - want), axis=-1))
@@ -469,19 +475,22 @@ def loss_fn(
     return loss, aux
 
 
-def _check_dense(mcfg: ModelConfig, batch: dict) -> None:
+def _check_dense(mcfg: ModelConfig, lcfg: LossConfig, batch: dict) -> None:
     if not mcfg.dense_head:
         raise ValueError("loss.w_dense > 0 needs a model with model.dense_head=True")
+    if lcfg.w_dense_xyz > 0 and not mcfg.dense_xyz:
+        raise ValueError("loss.w_dense_xyz > 0 needs a model with model.dense_xyz=True")
     if "dense" not in batch or "dense_w" not in batch:
         raise ValueError("loss.w_dense > 0 needs a batch with 'dense' and 'dense_w' (a stream with dense=True)")
 
 
-def dense_loss(out: dict, batch: dict) -> jax.Array:
-    """L1 of the dense head's normal and relative depth against the stream's targets
-    (``batch['dense']`` (B,h,w,4)), averaged over blocks weighted by ``batch['dense_w']`` (B,h,w)."""
+def dense_loss(out: dict, batch: dict, channels: slice = slice(0, 4)) -> jax.Array:
+    """L1 of the dense head's ``channels`` (0-3: normal and relative depth; 4-6: object-frame
+    points) against the stream's targets (``batch['dense']`` (B,h,w,4 or 7)), averaged over
+    blocks weighted by ``batch['dense_w']`` (B,h,w)."""
     target = jnp.asarray(batch["dense"], jnp.float32)
     w = jnp.asarray(batch["dense_w"], jnp.float32)
     if target.shape != out["dense"].shape or w.shape != target.shape[:-1]:
         raise ValueError(f"dense targets {target.shape} / weights {w.shape} do not match the head {out['dense'].shape}")
-    err = jnp.sum(jnp.abs(out["dense"] - target), axis=-1)
+    err = jnp.sum(jnp.abs(out["dense"][..., channels] - target[..., channels]), axis=-1)
     return jnp.sum(w * err) / (jnp.sum(w) + 1e-6)

@@ -35,7 +35,7 @@ def init(key: jax.Array, cfg: ModelConfig) -> dict:
         "rot_head": init_rotation_head(k4, cfg),
     }
     if cfg.dense_head:  # a fifth child of the generator: the other parts are drawn as without it
-        params["dense_head"] = init_dense(split(rng, 1)[0], cfg.feat_dim, N_DENSE, scale=1.0)
+        params["dense_head"] = init_dense(split(rng, 1)[0], cfg.feat_dim, N_DENSE + 3 * cfg.dense_xyz, scale=1.0)
     if cfg.rot_readout:  # the next child: the parts above are drawn as without it
         params["rot_readout"] = _init_stacked_dense(split(rng, 1)[0], cfg.n_objects, cfg.emb_dim, 6, scale=1.0)
     if cfg.z_rot:  # the next child
@@ -77,7 +77,7 @@ def apply(
 
     Returns {'rot_emb' (B,emb_dim) unit-norm image embedding, 'delta_xy' (B,2),
     'z_logits' (B,n_z_bins), 'mask_logit' (B,S/4,S/4)}, and 'dense' (B,S/4,S/4,4) with
-    cfg.dense_head, 'rot_6d' (B,6) with cfg.rot_readout.
+    cfg.dense_head ((B,S/4,S/4,7) with cfg.dense_xyz), 'rot_6d' (B,6) with cfg.rot_readout.
     """
     _check_inputs(cfg, rgb, pe, obj_idx)
     obj_idx = jnp.asarray(obj_idx, jnp.int32)

@@ -319,8 +319,10 @@ def train(
     common.update(cfg.stream.set_scene_fields())  # None = the stream's default
     if cfg.curriculum_steps:
         common["curriculum"] = cfg.curriculum_steps
-    if getattr(cfg.loss, "w_dense", 0) > 0:
+    if getattr(cfg.loss, "w_dense", 0) > 0 or getattr(cfg.loss, "w_dense_xyz", 0) > 0:
         common["dense"] = True
+    if getattr(cfg.model, "dense_xyz", False) and common.get("dense"):
+        common["dense_xyz"] = True
     if getattr(cfg.model, "pe_turns", False):
         common["pe_turns"] = True
     from sc6d_jax.data._stream import PASSED_WHEN_SET
