@@ -6,7 +6,7 @@
 Rows: the stream as the presets use it, then with each realism option alone (``materials``,
 ``sensor``, ``resample``, ``distractors=3``, ``object_gain=(0.5, 2)``, ``object_contrast=(0.5, 2)``,
 ``object_colour=(0.7, 1.4)``, ``scene_backgrounds=1``, ``shadows=1``, ``tabletop=1``), the table
-with shadows, the table with its neighbours against the target (``tabletop_gap=(0, 0.2)``), then
+with shadows, the table with its neighbours against the target (``tabletop_spacing=(0, 0.2)``), then
 the first four together. Every row draws from the same seed, so column j
 shows the same object at the same pose in every row; the options draw random numbers of their
 own, so backgrounds, lights and the in-plane turns differ. With ``--dataset``, a last row of
@@ -40,7 +40,7 @@ ROWS: tuple[tuple[str, dict], ...] = (
     ("shadows=1", {"shadows": 1.0}),
     ("tabletop=1", {"tabletop": 1.0}),
     ("tabletop=1, shadows=1", {"tabletop": 1.0, "shadows": 1.0}),
-    ("tabletop=1, tabletop_gap=0,0.2", {"tabletop": 1.0, "tabletop_gap": (0.0, 0.2)}),
+    ("tabletop=1, tabletop_spacing=0,0.2", {"tabletop": 1.0, "tabletop_spacing": (0.0, 0.2)}),
     ("all four", {"materials": True, "sensor": True, "resample": True, "distractors": 3}),
 )
 

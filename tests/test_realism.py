@@ -306,9 +306,9 @@ def test_tabletop_stands_the_target_and_its_neighbours_on_one_table(models):
         ren.close()
 
 
-def test_tabletop_gap_stands_neighbours_against_the_target(models):
-    """``gap``: along each neighbour's direction from the target in the table's plane, its
-    nearest point lies the drawn gap (0-0.1 target diameters) beyond the target's farthest one,
+def test_tabletop_spacing_stands_neighbours_against_the_target(models):
+    """``spacing``: along each neighbour's direction from the target in the table's plane, its
+    nearest point lies the drawn spacing (0-0.1 target diameters) beyond the target's farthest one,
     so a plane separates them; they stand nearer than outside the bounding spheres."""
     from sc6d_jax.bop import load_models_info, model_path
     from sc6d_jax.data._clutter import support, table_under, tabletop_around
@@ -320,11 +320,11 @@ def test_tabletop_gap_stands_neighbours_against_the_target(models):
     verts = {i: hull_vertices(load_mesh(model_path(models, i)).vertices) for i in ids}
     radii = {i: float(np.linalg.norm(v, axis=1).max()) for i, v in verts.items()}
     diam = {i: info[i].diameter for i in ids}
-    gaps, dist_gap, dist_sphere = [], [], []
+    spacings, dist_spaced, dist_sphere = [], [], []
     for seed in range(12):
         p = sample_pose(np.random.default_rng(seed), ids, verts, diam)
         _, objs, prims = tabletop_around(np.random.default_rng(7 + seed), p.obj_id, p.R, p.t, verts, radii, diam, ids,
-                                         gap=(0.0, 0.1))
+                                         spacing=(0.0, 0.1))
         _, objs0, _ = tabletop_around(np.random.default_rng(7 + seed), p.obj_id, p.R, p.t, verts, radii, diam, ids)
         n, _ = table_under(np.random.default_rng(7 + seed), p.R, p.t, verts[p.obj_id])
         target = verts[p.obj_id] @ p.R.T  # about the target's centre
@@ -336,16 +336,16 @@ def test_tabletop_gap_stands_neighbours_against_the_target(models):
 
         for oid, R_o, c in objs:
             u = along(c)
-            gaps.append((float(((verts[oid] @ R_o.T + c - p.t) @ u).min()) - float((target @ u).max())) / diam[p.obj_id])
-            dist_gap.append(float(np.linalg.norm(c - p.t)))
+            spacings.append((float(((verts[oid] @ R_o.T + c - p.t) @ u).min()) - float((target @ u).max())) / diam[p.obj_id])
+            dist_spaced.append(float(np.linalg.norm(c - p.t)))
         for q in prims:
             u = along(q.t)
             reach = float((np.asarray(q.t) - p.t) @ u) - support(q.shape, q.size, q.R, u)
-            gaps.append((reach - float((target @ u).max())) / diam[p.obj_id])
+            spacings.append((reach - float((target @ u).max())) / diam[p.obj_id])
         dist_sphere += [float(np.linalg.norm(c - p.t)) for _, _, c in objs0]
-    assert len(gaps) >= 12
-    assert min(gaps) >= -1e-6 and max(gaps) <= 0.1 + 1e-6
-    assert np.median(dist_gap) < 0.8 * np.median(dist_sphere)
+    assert len(spacings) >= 12
+    assert min(spacings) >= -1e-6 and max(spacings) <= 0.1 + 1e-6
+    assert np.median(dist_spaced) < 0.8 * np.median(dist_sphere)
 
 
 def test_stream_tabletop_keeps_the_labels_and_is_deterministic(models):
@@ -368,12 +368,12 @@ def test_stream_tabletop_keeps_the_labels_and_is_deterministic(models):
         StreamConfig(str(models), tabletop=1.5)
     with pytest.raises(ValueError, match="tabletop"):
         apply_overrides(preset("tiny"), ["stream.tabletop=-0.1"])
-    with pytest.raises(ValueError, match="tabletop_gap"):
-        StreamConfig(str(models), tabletop=1.0, tabletop_gap=(0.3, 0.1))
+    with pytest.raises(ValueError, match="tabletop_spacing"):
+        StreamConfig(str(models), tabletop=1.0, tabletop_spacing=(0.3, 0.1))
     with pytest.raises(ValueError, match="needs stream.tabletop > 0"):
-        apply_overrides(preset("tiny"), ["stream.tabletop_gap=0,0.2"])
+        apply_overrides(preset("tiny"), ["stream.tabletop_spacing=0,0.2"])
     # neighbours in contact, crops cut from the visible box: still the same poses, deterministic
-    near, near2 = (first_batch(tabletop=1.0, tabletop_gap=(0.0, 0.1), box_source="visible") for _ in range(2))
+    near, near2 = (first_batch(tabletop=1.0, tabletop_spacing=(0.0, 0.1), box_source="visible") for _ in range(2))
     for k in near:
         np.testing.assert_array_equal(near[k], near2[k])
     np.testing.assert_array_equal(near["R"], base["R"])

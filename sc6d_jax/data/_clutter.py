@@ -165,7 +165,7 @@ def tabletop_around(
     ids: list[int],
     max_instances: int = 2,
     near: float = 10.0,
-    gap: tuple[float, float] | None = None,
+    spacing: tuple[float, float] | None = None,
 ):
     """The target ``obj_id`` at (R, t) standing on a table, with 1-4 other models and 0-2
     primitive shapes standing on the same table around it: ``(table, objects, primitives)``, the
@@ -180,7 +180,7 @@ def tabletop_around(
     meet the target's, so nothing intersects the target; a neighbour that would reach the near
     plane is left out. Neighbours in front of the target may occlude it, as in a real scene.
 
-    ``gap``: ``(low, high)`` in target diameters: each neighbour stands instead that far (uniform)
+    ``spacing``: ``(low, high)`` in target diameters: each neighbour stands instead that far (uniform)
     from the target along its direction in the table's plane, measured between the two shapes'
     extents along that direction (their support functions over ``vertices``), so that the
     plane perpendicular to it separates them: touching at 0, never intersecting. Photographed
@@ -209,14 +209,14 @@ def tabletop_around(
         R_o = random_rotation(rng)
         ang = rng.uniform(0, 2 * np.pi)
         u = np.cos(ang) * e1 + np.sin(ang) * e2
-        if gap is None:
+        if spacing is None:
             dist = r_t + float(radii[oid]) + rng.uniform(0.0, TABLE_SPREAD) * d_t
-        else:  # separated along u: the target's extent along u, the neighbour's along -u, the gap
+        else:  # separated along u: the target's extent along u, the neighbour's along -u, the spacing
             dist = (float(np.max(target_v @ u)) + float(np.max(-(vertices[oid] @ R_o.T) @ u))
-                    + rng.uniform(*gap) * d_t)
+                    + rng.uniform(*spacing) * d_t)
         lift = -float(np.min(vertices[oid] @ R_o.T @ n))  # its lowest point onto the plane
         c = foot + dist * u + lift * n
-        apart = gap is not None or np.linalg.norm(c - t) >= r_t + radii[oid]
+        apart = spacing is not None or np.linalg.norm(c - t) >= r_t + radii[oid]
         if used.get(oid, 0) >= max_instances or not apart or c[2] - radii[oid] < near:
             continue
         used[oid] = used.get(oid, 0) + 1
@@ -229,10 +229,10 @@ def tabletop_around(
         r_p = float(np.linalg.norm(s))  # a sphere about the shape's centre that holds it
         ang = rng.uniform(0, 2 * np.pi)
         u = np.cos(ang) * e1 + np.sin(ang) * e2
-        if gap is None:
+        if spacing is None:
             dist = r_t + r_p + rng.uniform(0.0, TABLE_SPREAD) * d_t
         else:
-            dist = float(np.max(target_v @ u)) + support(shape, s, R_p, u) + rng.uniform(*gap) * d_t
+            dist = float(np.max(target_v @ u)) + support(shape, s, R_p, u) + rng.uniform(*spacing) * d_t
         c = foot + dist * u + support(shape, s, R_p, n) * n
         if c[2] - r_p < near:
             continue

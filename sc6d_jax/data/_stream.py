@@ -152,7 +152,7 @@ class StreamConfig:
             (the default) is lit apart from its surroundings and never touches them; in a
             photograph it shares their light. Such a crop has no floating ``distractors``.
             Scaled by the curriculum's difficulty, as the distractors are. 0 = off.
-        tabletop_gap: (low, high) in target diameters: the table's neighbours stand that far
+        tabletop_spacing: (low, high) in target diameters: the table's neighbours stand that far
             from the target (uniform), measured between their extents along the direction
             from the target to each (they touch at 0 and never intersect), instead of outside
             the target's bounding sphere (None, the default: apart by its largest radius or
@@ -200,7 +200,7 @@ class StreamConfig:
     scene_backgrounds: float = 0.0
     shadows: float = 0.0
     tabletop: float = 0.0
-    tabletop_gap: tuple[float, float] | None = None
+    tabletop_spacing: tuple[float, float] | None = None
     image_border: bool = False
 
     def __post_init__(self) -> None:
@@ -232,7 +232,7 @@ class StreamConfig:
 #: and the other options a training config passes on to the stream only when set: the one list
 #: that the training settings (``sc6d_jax.train.config.StreamSettings``) and loop follow.
 REALISM_OPTIONS = ("materials", "resample", "sensor", "distractors", "object_gain", "object_contrast",
-                   "object_colour", "scene_backgrounds", "shadows", "tabletop", "tabletop_gap")
+                   "object_colour", "scene_backgrounds", "shadows", "tabletop", "tabletop_spacing")
 PASSED_WHEN_SET = (*REALISM_OPTIONS, "max_faces", "image_border")
 
 
@@ -247,14 +247,14 @@ def check_options(cfg, prefix: str = "") -> None:
     for name in ("object_gain", "object_contrast", "object_colour"):
         if getattr(cfg, name) is not None:
             object.__setattr__(cfg, name, positive_range(getattr(cfg, name), prefix + name))
-    if cfg.tabletop_gap is not None:
-        g = _float_pair(cfg.tabletop_gap)
+    if cfg.tabletop_spacing is not None:
+        g = _float_pair(cfg.tabletop_spacing)
         if len(g) != 2 or not 0.0 <= g[0] <= g[1]:
-            raise ValueError(f"{prefix}tabletop_gap must be (low, high) with 0 <= low <= high target diameters, "
-                             f"got {cfg.tabletop_gap!r}")
-        object.__setattr__(cfg, "tabletop_gap", g)
+            raise ValueError(f"{prefix}tabletop_spacing must be (low, high) with 0 <= low <= high target diameters, "
+                             f"got {cfg.tabletop_spacing!r}")
+        object.__setattr__(cfg, "tabletop_spacing", g)
         if not cfg.tabletop:
-            raise ValueError(f"{prefix}tabletop_gap places the table's neighbours: it needs {prefix}tabletop > 0")
+            raise ValueError(f"{prefix}tabletop_spacing places the table's neighbours: it needs {prefix}tabletop > 0")
     if not isinstance(cfg.distractors, int) or cfg.distractors < 0:
         raise ValueError(f"{prefix}distractors must be a non-negative integer, got {cfg.distractors!r}")
     if not isinstance(cfg.max_faces, int) or cfg.max_faces < 0 or 0 < cfg.max_faces < 4:
@@ -567,9 +567,9 @@ class _Worker:
             # the target stands on a table among other models and shapes, all in this one render
             table, around, shapes = tabletop_around(rng, p.obj_id, p.R, p.t, self.vertices, self.radii,
                                                     self.diameters, self.all_ids, self.renderer.max_instances,
-                                                    self.renderer.near, gap=cfg.tabletop_gap)
+                                                    self.renderer.near, spacing=cfg.tabletop_spacing)
             # neighbours in contact hide the target as occluders do: cut from its visible box
-            occluded = occluded or (cfg.tabletop_gap is not None and bool(around or shapes))
+            occluded = occluded or (cfg.tabletop_spacing is not None and bool(around or shapes))
             for o in around:
                 if sum(q[0] == o[0] for q in objects) < self.renderer.max_instances:
                     objects.append(o)

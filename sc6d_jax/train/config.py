@@ -67,7 +67,7 @@ class StreamSettings:
             an image is (``sc6d_jax.data.StreamConfig.image_border``); the validation crops do
             not, so runs with and without it are scored on the same crops.
         materials, resample, sensor, distractors, object_gain, object_contrast, object_colour,
-            scene_backgrounds, shadows, tabletop, tabletop_gap: the stream's
+            scene_backgrounds, shadows, tabletop, tabletop_spacing: the stream's
             realism options for real test images (``sc6d_jax.data.StreamConfig``; off by
             default). The validation crops never use them, so runs with and without them are
             scored on the same crops.
@@ -109,7 +109,7 @@ class StreamSettings:
     scene_backgrounds: float = 0.0
     shadows: float = 0.0
     tabletop: float = 0.0
-    tabletop_gap: tuple[float, float] | None = None
+    tabletop_spacing: tuple[float, float] | None = None
     image_border: bool = False
 
     #: fields whose ``None`` leaves the crop stream's own default in place
