@@ -40,7 +40,7 @@ ROWS: tuple[tuple[str, dict], ...] = (
     ("shadows=1", {"shadows": 1.0}),
     ("tabletop=1", {"tabletop": 1.0}),
     ("tabletop=1, shadows=1", {"tabletop": 1.0, "shadows": 1.0}),
-    ("tabletop=1, tabletop_spacing=0,0.2", {"tabletop": 1.0, "tabletop_spacing": (0.0, 0.2)}),
+    ("tabletop_spacing=0,0.2", {"tabletop": 1.0, "tabletop_spacing": (0.0, 0.2)}),
     ("all four", {"materials": True, "sensor": True, "resample": True, "distractors": 3}),
 )
 
