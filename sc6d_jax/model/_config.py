@@ -52,8 +52,8 @@ class ModelConfig:
     - dense_xyz: the dense head also predicts the visible surface's points in the object's own
       frame (3 more channels, ``out["dense"]`` (B,S/4,S/4,7)), trained by
       ``LossConfig.w_dense_xyz``: object coordinates tell the small parts that break a nearly
-      symmetric object's symmetry (the dumbbell's cube) by where they are, pixel by pixel.
-      Needs dense_head. Not used at inference.
+      symmetric object's symmetry (the dumbbell's cube) by where they are, pixel by pixel
+      (measured on the dumbbell: no gain, README). Needs dense_head. Not used at inference.
     - gn_groups: maximum GroupNorm groups (32; fewer when channels are few).
     - mask_gate: multiply the decoder features by sigmoid(mask logit) before the pose decoder,
       so that clutter and occluders reach the heads damped by the predicted visible mask

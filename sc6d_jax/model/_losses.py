@@ -477,11 +477,12 @@ def loss_fn(
 
 def _check_dense(mcfg: ModelConfig, lcfg: LossConfig, batch: dict) -> None:
     if not mcfg.dense_head:
-        raise ValueError("loss.w_dense > 0 needs a model with model.dense_head=True")
+        raise ValueError("loss.w_dense or loss.w_dense_xyz > 0 needs a model with model.dense_head=True")
     if lcfg.w_dense_xyz > 0 and not mcfg.dense_xyz:
         raise ValueError("loss.w_dense_xyz > 0 needs a model with model.dense_xyz=True")
     if "dense" not in batch or "dense_w" not in batch:
-        raise ValueError("loss.w_dense > 0 needs a batch with 'dense' and 'dense_w' (a stream with dense=True)")
+        raise ValueError("loss.w_dense or loss.w_dense_xyz > 0 needs a batch with 'dense' and 'dense_w' "
+                         "(a stream with dense=True)")
 
 
 def dense_loss(out: dict, batch: dict, channels: slice = slice(0, 4)) -> jax.Array:
