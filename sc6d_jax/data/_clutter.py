@@ -209,12 +209,12 @@ def tabletop_around(
         R_o = random_rotation(rng)
         ang = rng.uniform(0, 2 * np.pi)
         u = np.cos(ang) * e1 + np.sin(ang) * e2
+        v_o = vertices[oid] @ R_o.T  # its points about its centre, camera axes
         if spacing is None:
             dist = r_t + float(radii[oid]) + rng.uniform(0.0, TABLE_SPREAD) * d_t
         else:  # separated along u: the target's extent along u, the neighbour's along -u, the spacing
-            dist = (float(np.max(target_v @ u)) + float(np.max(-(vertices[oid] @ R_o.T) @ u))
-                    + rng.uniform(*spacing) * d_t)
-        lift = -float(np.min(vertices[oid] @ R_o.T @ n))  # its lowest point onto the plane
+            dist = float(np.max(target_v @ u)) + float(np.max(-(v_o @ u))) + rng.uniform(*spacing) * d_t
+        lift = -float(np.min(v_o @ n))  # its lowest point onto the plane
         c = foot + dist * u + lift * n
         apart = spacing is not None or np.linalg.norm(c - t) >= r_t + radii[oid]
         if used.get(oid, 0) >= max_instances or not apart or c[2] - radii[oid] < near:
