@@ -251,22 +251,29 @@ def test_primitive_support_is_the_farthest_point_along_the_direction():
         support("cone", (1, 1, 1), np.eye(3), np.array([0, 0, 1.0]))
 
 
+def _table_models(models, ids):
+    """What ``tabletop_around`` takes of the models ``ids``: (meshes, hull vertices, radii, diameters)."""
+    from sc6d_jax.bop import load_models_info, model_path
+    from sc6d_jax.data._scene import hull_vertices
+    from sc6d_jax.render import load_mesh
+
+    info = load_models_info(models)
+    meshes = {i: load_mesh(model_path(models, i)) for i in ids}
+    verts = {i: hull_vertices(m.vertices) for i, m in meshes.items()}
+    radii = {i: float(np.linalg.norm(v, axis=1).max()) for i, v in verts.items()}
+    return meshes, verts, radii, {i: info[i].diameter for i in ids}
+
+
 def test_tabletop_stands_the_target_and_its_neighbours_on_one_table(models):
     """``tabletop_around``: the table's plane touches the target's lowest point and faces the
     camera; every neighbour and shape rests on it without meeting the target; a pure function of
     the seed. Rendered, the table never covers the target and fills much of the crop."""
     from sc6d_jax import geometry as G
-    from sc6d_jax.bop import load_models_info, model_path
     from sc6d_jax.data._clutter import TABLE_GREY, support, table_under, tabletop_around, textured_table
-    from sc6d_jax.data._scene import hull_vertices, sample_pose
-    from sc6d_jax.render import load_mesh
+    from sc6d_jax.data._scene import sample_pose
 
     ids = [1, 5, 8]
-    info = load_models_info(models)
-    meshes = {i: load_mesh(model_path(models, i)) for i in ids}
-    verts = {i: hull_vertices(m.vertices) for i, m in meshes.items()}
-    radii = {i: float(np.linalg.norm(v, axis=1).max()) for i, v in verts.items()}
-    diam = {i: info[i].diameter for i in ids}
+    meshes, verts, radii, diam = _table_models(models, ids)
     S = 64
     ren = Renderer(meshes, S, S, max_instances=2, n_primitives=4)
     try:
@@ -310,16 +317,11 @@ def test_tabletop_spacing_stands_neighbours_against_the_target(models):
     """``spacing``: along each neighbour's direction from the target in the table's plane, its
     nearest point lies the drawn spacing (0-0.1 target diameters) beyond the target's farthest one,
     so a plane separates them; they stand nearer than outside the bounding spheres."""
-    from sc6d_jax.bop import load_models_info, model_path
     from sc6d_jax.data._clutter import support, table_under, tabletop_around
-    from sc6d_jax.data._scene import hull_vertices, sample_pose
-    from sc6d_jax.render import load_mesh
+    from sc6d_jax.data._scene import sample_pose
 
     ids = [1, 5, 8]
-    info = load_models_info(models)
-    verts = {i: hull_vertices(load_mesh(model_path(models, i)).vertices) for i in ids}
-    radii = {i: float(np.linalg.norm(v, axis=1).max()) for i, v in verts.items()}
-    diam = {i: info[i].diameter for i in ids}
+    _, verts, radii, diam = _table_models(models, ids)
     spacings, dist_spaced, dist_sphere = [], [], []
     for seed in range(12):
         p = sample_pose(np.random.default_rng(seed), ids, verts, diam)
