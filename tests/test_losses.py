@@ -451,3 +451,68 @@ def test_depth_prior_losses_joint_noisy_and_separate():
     np.testing.assert_allclose(float(loss4), float(rest + sep.w_z * a4["loss_z_prior"]), rtol=1e-5)
     g = jax.grad(lambda q: f(q, mcfg, sep, batch, key, Z_RANGE)[0])(p)
     assert all(float(jnp.abs(x).max()) > 0 for x in jax.tree.leaves(g["z_rot"]))
+
+
+def test_rotation_grid_classifier_reads_the_rotation_head_and_its_loss():
+    """model.rot_cls adds a per-object linear classifier of the rotation head's hidden layer over
+    a fixed grid (rot_cls_grid: proper rotations, deterministic; the other parameters are drawn
+    as without it); loss.w_rot_cls is the cross-entropy against the grid rotation nearest to the
+    allocentric ground truth, found here by hand."""
+    from sc6d_jax.model import apply, rot_cls_grid
+    from sc6d_jax.model._pose_decoder import pose_decoder
+
+    G = rot_cls_grid(64)
+    assert 48 <= len(G) <= 80 and np.array_equal(G, rot_cls_grid(64))
+    np.testing.assert_allclose(np.einsum("kji,kjl->kil", G, G), np.broadcast_to(np.eye(3), G.shape), atol=1e-5)
+    np.testing.assert_allclose(np.linalg.det(G), 1.0, atol=1e-5)
+    mcfg = dataclasses.replace(CFG, rot_cls=64)
+    p0, p = init(jax.random.key(0), CFG), init(jax.random.key(0), mcfg)
+    assert set(p) == set(p0) | {"rot_cls"} and p["rot_cls"]["w"].shape == (CFG.n_objects, CFG.head_hidden, len(G))
+    for a, b in zip(jax.tree.leaves(p0), jax.tree.leaves({k: v for k, v in p.items() if k != "rot_cls"})):
+        np.testing.assert_array_equal(a, b)
+    # random classifier weights, so that the logits differ between classes and objects
+    rng = np.random.default_rng(5)
+    p = {**p, "rot_cls": jax.tree.map(lambda a: jnp.asarray(rng.normal(size=a.shape).astype(np.float32)), p["rot_cls"])}
+    batch = _batch(mcfg)
+    out = jax.jit(apply, static_argnums=1)(p, mcfg, batch["rgb"], batch["pe"], batch["obj_idx"])
+    assert out["rot_cls_logits"].shape == (batch["rgb"].shape[0], len(G))
+    # the hidden layer the classifier reads, recomputed through the pose decoder alone
+    inner = {}
+
+    def spy(*args, **kw):
+        res = pose_decoder(*args, **kw)
+        inner["h"] = res[3]
+        return res
+
+    import sc6d_jax.model._network as net
+
+    orig = net.pose_decoder
+    net.pose_decoder = spy
+    try:
+        apply(p, mcfg, batch["rgb"], batch["pe"], batch["obj_idx"])
+    finally:
+        net.pose_decoder = orig
+    h = np.asarray(inner["h"])
+    w, b = np.asarray(p["rot_cls"]["w"]), np.asarray(p["rot_cls"]["b"])
+    logits = np.stack([h[i] @ w[o] + b[o] for i, o in enumerate(batch["obj_idx"])])
+    np.testing.assert_allclose(np.asarray(out["rot_cls_logits"]), logits, rtol=1e-4, atol=1e-4)
+    lcfg = LossConfig(n_negatives=8, w_rot_cls=0.5)
+    loss, aux = jax.jit(loss_fn, static_argnums=(1, 2, 5))(p, mcfg, lcfg, batch, jax.random.key(1), Z_RANGE)
+    R = np.asarray(batch["R_allo"], np.float64)
+    ang = np.arccos(np.clip((np.einsum("kji,bjl->bkil", G, R).trace(axis1=2, axis2=3) - 1) / 2, -1, 1))
+    nearest = np.argmin(ang, axis=1)
+    ls = logits - logits.max(1, keepdims=True)
+    logp = ls - np.log(np.exp(ls).sum(1, keepdims=True))
+    want = -np.mean(logp[np.arange(len(nearest)), nearest])
+    np.testing.assert_allclose(float(aux["loss_rot_cls"]), want, rtol=1e-4)
+    rest = lcfg.w_rot * aux["loss_rot"] + lcfg.w_xy * aux["loss_xy"] + lcfg.w_z * aux["loss_z"] + lcfg.w_mask * aux["loss_mask"]
+    np.testing.assert_allclose(float(loss), float(rest + 0.5 * aux["loss_rot_cls"]), rtol=1e-5)
+    with pytest.raises(ValueError, match="model.rot_cls"):
+        loss_fn(p0, CFG, lcfg, batch, jax.random.key(1), Z_RANGE)
+    for bad in (-1, 3, 2.5):
+        with pytest.raises(ValueError, match="rot_cls"):
+            dataclasses.replace(CFG, rot_cls=bad)
+    with pytest.raises(ValueError, match="w_rot_cls"):
+        LossConfig(w_rot_cls=-1.0)
+    with pytest.raises(ValueError, match="size"):
+        rot_cls_grid(4)

@@ -81,6 +81,15 @@ class ModelConfig:
       columns of the allocentric rotation (``out["rot_6d"]`` (B,6)), trained by
       ``LossConfig.w_rot_readout``: the embedding itself has to carry the angle wherever the
       crop shows it. Not used at inference.
+    - rot_cls: an auxiliary per-object classifier of the allocentric rotation over a fixed grid
+      of about ``rot_cls`` rotations (:func:`sc6d_jax.model.rot_cls_grid`), read off the
+      rotation head's hidden layer (``out["rot_cls_logits"]``), trained by
+      ``LossConfig.w_rot_cls`` with cross-entropy on the grid rotation nearest to the ground
+      truth (0 = off, paper). Its classes are free parameters, so unlike the SO(3) encoder it
+      cannot give a ring of turns one class; unlike the readout's regression, cross-entropy
+      over distinct classes does not settle on the mean of an ambiguous target. No symmetry
+      labels: for a symmetric object it learns a spread over the equivalent classes. Not used
+      at inference.
     - pose_downsample: stride-2 convs of the pose decoder before its dilated block (2, paper:
       the block runs at S/16 and the heads see S/32). 1 runs the block at S/8, the heads at
       S/16 (the second conv keeps its weights, with stride 1): for a 64-px crop the heads read
@@ -122,6 +131,7 @@ class ModelConfig:
     z_size_input: bool = False
     pose_downsample: int = 2
     rot_readout: bool = False
+    rot_cls: int = 0
     z_rot: bool = False
     pe_turns: bool = False
     z_ray_input: bool = False
@@ -151,6 +161,10 @@ class ModelConfig:
             raise ValueError("z_scale_input needs use_pe=True (the crop's angular size is read off the PE map)")
         if self.decoder_width < 0 or self.ipdf_pe_freqs < 0 or self.so3_pe_freqs < 0:
             raise ValueError("decoder_width, ipdf_pe_freqs and so3_pe_freqs must be >= 0")
+        if not isinstance(self.rot_cls, int) or self.rot_cls < 0:
+            raise ValueError(f"rot_cls must be an int >= 0 (0 = off), got {self.rot_cls!r}")
+        if 0 < self.rot_cls < 8:
+            raise ValueError(f"rot_cls must be 0 (off) or at least 8 grid rotations, got {self.rot_cls}")
         if self.dense_xyz and not self.dense_head:
             raise ValueError("dense_xyz adds channels to the dense head: it needs dense_head=True")
 

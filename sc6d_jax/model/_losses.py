@@ -24,7 +24,7 @@ from sc6d_jax.geometry import (
 )
 
 from ._config import ModelConfig
-from ._network import apply, with_z_prior
+from ._network import apply, rot_cls_grid, with_z_prior
 from ._rotation import rotation_logits, z_prior_logits
 
 Z_MODES = ("regression", "classification", "expectation")
@@ -89,6 +89,9 @@ class LossConfig:
       is flat): a nearly symmetric object (a dumbbell about its bar) stays there. The readout
       asks the image embedding for the angle directly. No symmetry labels: for an exactly
       symmetric object the target is ambiguous and the readout learns its mean (0 = off, paper).
+    - w_rot_cls: weight of the cross-entropy of the model's rotation classifier
+      (``ModelConfig.rot_cls``) against the grid rotation nearest to the allocentric ground truth
+      (0 = off, paper).
     - z_rot_noise_deg: with ``ModelConfig.z_rot``, the rotation the depth prior is fed in
       training is the ground truth turned about a random axis by an angle uniform in
       [0, z_rot_noise_deg] (0 = the ground truth itself): inference feeds the matched rotation,
@@ -140,6 +143,7 @@ class LossConfig:
     n_axis_negatives: int = 0
     axis_min_deg: float = 30.0
     w_rot_readout: float = 0.0
+    w_rot_cls: float = 0.0
     z_rot_noise_deg: float = 0.0
     z_rot_separate: bool = False
 
@@ -173,7 +177,8 @@ class LossConfig:
             raise ValueError(f"tau must be > 0, got {self.tau}")
         if not isinstance(self.n_negatives, int) or self.n_negatives < 1:
             raise ValueError(f"n_negatives must be a positive int, got {self.n_negatives!r}")
-        for name in ("w_rot", "w_xy", "w_z", "w_mask", "w_z_l1", "w_dense", "w_dense_xyz", "w_rot_readout", "focal_alpha",
+        for name in ("w_rot", "w_xy", "w_z", "w_mask", "w_z_l1", "w_dense", "w_dense_xyz", "w_rot_readout", "w_rot_cls",
+                     "focal_alpha",
                      "focal_gamma", "z_rot_noise_deg"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
@@ -391,6 +396,8 @@ def loss_fn(
         raise ValueError("z_norm='focal' needs the image intrinsics K (batch['K'])")
     if lcfg.w_dense > 0 or lcfg.w_dense_xyz > 0:
         _check_dense(mcfg, lcfg, batch)
+    if lcfg.w_rot_cls > 0 and not mcfg.rot_cls:
+        raise ValueError("loss.w_rot_cls > 0 needs a model with model.rot_cls > 0 (its grid size)")
     if lcfg.w_rot_readout > 0 and not mcfg.rot_readout:
         raise ValueError("loss.w_rot_readout > 0 needs a model with model.rot_readout=True")
     d_lo, d_hi = z_range
@@ -460,6 +467,11 @@ def loss_fn(
         want = jnp.swapaxes(R_gt[:, :, :2], 1, 2).reshape(R_gt.shape[0], 6)  # the two columns, one after the other
         extra["loss_rot_readout"] = jnp.mean(jnp.sum(jnp.square(out["rot_6d"] - want), axis=-1))
         loss = loss + lcfg.w_rot_readout * extra["loss_rot_readout"]
+    if lcfg.w_rot_cls > 0:
+        G = jnp.asarray(rot_cls_grid(mcfg.rot_cls))
+        nearest = jnp.argmax(jnp.einsum("kij,bij->bk", G, R_gt), axis=-1)  # max trace(G^T R) = min angle
+        extra["loss_rot_cls"] = cross_entropy(out["rot_cls_logits"], nearest)
+        loss = loss + lcfg.w_rot_cls * extra["loss_rot_cls"]
     aux = {
         "loss": loss,
         "loss_rot": loss_rot,

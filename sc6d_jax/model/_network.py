@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._config import ModelConfig
 from ._layers import dense, init_dense, make_rng, split
@@ -40,7 +43,27 @@ def init(key: jax.Array, cfg: ModelConfig) -> dict:
         params["rot_readout"] = _init_stacked_dense(split(rng, 1)[0], cfg.n_objects, cfg.emb_dim, 6, scale=1.0)
     if cfg.z_rot:  # the next child
         params["z_rot"] = init_z_prior(split(rng, 1)[0], cfg)
+    if cfg.rot_cls:  # the next child
+        n = len(rot_cls_grid(cfg.rot_cls))
+        params["rot_cls"] = _init_stacked_dense(split(rng, 1)[0], cfg.n_objects, cfg.head_hidden, n, scale=0.01)
     return jax.tree.map(jnp.asarray, params)
+
+
+@functools.lru_cache(maxsize=8)
+def rot_cls_grid(size: int) -> np.ndarray:
+    """The classes of ``ModelConfig.rot_cls``: about ``size`` rotations, float32 (N,3,3), from
+    :func:`sc6d_jax.geometry.so3_grid` with its viewpoint and in-plane spacings matched
+    (``n_inplane ~ (pi size)^(1/3)``, ``n_views ~ n_inplane^2 / pi``): 1,000 gives 15 x 67
+    = 1,005 rotations, about 24 degrees apart."""
+    from sc6d_jax.geometry import so3_grid
+
+    if not isinstance(size, (int, np.integer)) or size < 8:
+        raise ValueError(f"rot_cls_grid: size must be an int >= 8, got {size!r}")
+    n_in = max(2, int(round((np.pi * size) ** (1.0 / 3.0))))
+    n_views = max(4, int(round(size / n_in)))
+    g = np.asarray(so3_grid(n_views, n_in), np.float32)
+    g.setflags(write=False)
+    return g
 
 
 def normalize_rgb(rgb: jax.Array) -> jax.Array:
@@ -77,7 +100,8 @@ def apply(
 
     Returns {'rot_emb' (B,emb_dim) unit-norm image embedding, 'delta_xy' (B,2),
     'z_logits' (B,n_z_bins), 'mask_logit' (B,S/4,S/4)}, and 'dense' (B,S/4,S/4,4) with
-    cfg.dense_head ((B,S/4,S/4,7) with cfg.dense_xyz), 'rot_6d' (B,6) with cfg.rot_readout.
+    cfg.dense_head ((B,S/4,S/4,7) with cfg.dense_xyz), 'rot_6d' (B,6) with cfg.rot_readout, 'rot_cls_logits' (B,N) with cfg.rot_cls (N =
+    len(rot_cls_grid(cfg.rot_cls))).
     """
     _check_inputs(cfg, rgb, pe, obj_idx)
     obj_idx = jnp.asarray(obj_idx, jnp.int32)
@@ -95,8 +119,12 @@ def apply(
             mask, on = teacher_gate
             gate = jnp.where(jnp.asarray(on)[:, None, None], jnp.asarray(mask, gate.dtype), gate)
         feat = feat * gate[..., None]
-    rot, dxy, zl = pose_decoder(params["pose_decoder"], cfg, feat, mask_logit, pe if cfg.use_pe else None)
+    rot, dxy, zl, h_rot = pose_decoder(params["pose_decoder"], cfg, feat, mask_logit, pe if cfg.use_pe else None,
+                                       return_hidden=True)
     emb = _l2n(rot)
+    if cfg.rot_cls:
+        rc = params["rot_cls"]
+        extra["rot_cls_logits"] = jnp.einsum("bh,bhk->bk", h_rot, rc["w"][obj_idx]) + rc["b"][obj_idx]
     if cfg.rot_readout:
         ro = params["rot_readout"]
         extra["rot_6d"] = jnp.einsum("be,bes->bs", emb, ro["w"][obj_idx]) + ro["b"][obj_idx]

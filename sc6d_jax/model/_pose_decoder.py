@@ -117,9 +117,11 @@ def mask_size_features(mask_logit: jax.Array) -> jax.Array:
 
 
 def pose_decoder(
-    params: dict, cfg: ModelConfig, feat: jax.Array, mask_logit: jax.Array, pe: jax.Array | None = None
-) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Returns (raw rotation feature (B,emb_dim), delta_xy (B,2), z logits (B,n_z_bins)).
+    params: dict, cfg: ModelConfig, feat: jax.Array, mask_logit: jax.Array, pe: jax.Array | None = None,
+    return_hidden: bool = False,
+) -> tuple[jax.Array, ...]:
+    """Returns (raw rotation feature (B,emb_dim), delta_xy (B,2), z logits (B,n_z_bins)), and with
+    ``return_hidden`` also the rotation head's hidden layer (B,head_hidden).
     ``pe`` (B,S,S,2): the crops' PE maps, needed with ``cfg.z_ray_input``."""
     if (cfg.z_ray_input or cfg.z_scale_input) and pe is None:
         raise ValueError("z_ray_input and z_scale_input need the PE map (use_pe=True)")
@@ -131,7 +133,7 @@ def pose_decoder(
         branches.append(conv_gn_relu(x, p, cfg, dilation=d))
     branches.append(jnp.broadcast_to(jnp.mean(x, axis=(1, 2), keepdims=True), x.shape))
     x = jnp.concatenate(branches, axis=-1)
-    outs = []
+    outs, hidden = [], []
     for name in ("rot", "xy", "z"):
         p = params[name]
         h = conv_gn_relu(x, p["conv"], cfg, stride=2)
@@ -144,5 +146,8 @@ def pose_decoder(
         if name == "z" and "scale" in p:
             h = h + dense(scale_features(pe), p["scale"]["w"], p["scale"]["b"])
         h = jax.nn.relu(group_norm(h, p["fc_gn"]["scale"], p["fc_gn"]["bias"], num_groups(h.shape[-1], cfg.gn_groups)))
+        hidden.append(h)
         outs.append(dense(h, p["out"]["w"], p["out"]["b"]))
+    if return_hidden:
+        return outs[0], outs[1], outs[2], hidden[0]
     return outs[0], outs[1], outs[2]

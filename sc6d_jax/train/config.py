@@ -468,6 +468,11 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # embedding; experiments/ring_profile.py), none of these broke that ring by step 1,500:
         # model.pose_downsample=1, loss.n_axis_negatives=64, model.mask_gate=false, and
         # model.rot_readout with loss.w_rot_readout=1 or 10 (its loss stayed at the no-angle 2.0).
+        # Nor by step 3,000: dense object coordinates (model.dense_xyz), 128-pixel crops, a classifier
+        # over a fixed grid of 1,005 rotations (model.rot_cls=1000, loss.w_rot_cls=1: 46 vs 47 % of
+        # the crops more than 90 degrees off). On obj 1 (6,000 steps) the object coordinates change
+        # nothing (test AR 0.657 vs 0.646, fused 0.665 vs 0.676) and PnP from them is far worse than
+        # the network (experiments/pnp_probe.py: 39.6 vs 10.9 degrees).
         # A depth prior from the matched rotation (model.z_rot, obj 1, 6,000 steps): trained jointly
         # with 5-degree noise 0.581 / 11.5 deg / depth 3.81 % against 0.605 / 11.6 / 3.28 %; fitted
         # alone and added to a finished run, the same (README "Depth from the rotation"). A wider
