@@ -178,8 +178,7 @@ class LossConfig:
         if not isinstance(self.n_negatives, int) or self.n_negatives < 1:
             raise ValueError(f"n_negatives must be a positive int, got {self.n_negatives!r}")
         for name in ("w_rot", "w_xy", "w_z", "w_mask", "w_z_l1", "w_dense", "w_dense_xyz", "w_rot_readout", "w_rot_cls",
-                     "focal_alpha",
-                     "focal_gamma", "z_rot_noise_deg"):
+                     "focal_alpha", "focal_gamma", "z_rot_noise_deg"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 
