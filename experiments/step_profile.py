@@ -95,27 +95,20 @@ def _setup(a: argparse.Namespace, models: Path):
     import jax
 
     from sc6d_jax.data import CropStream, StreamConfig, delta_z_range
-    from sc6d_jax.model import F_REF, init, loss_fn
+    from sc6d_jax.model import init, loss_fn
     from sc6d_jax.train import preset
     from sc6d_jax.train.cli import apply_overrides
-    from sc6d_jax.train.loop import make_optimizer, make_train_step
+    from sc6d_jax.train.loop import make_optimizer, make_train_step, resolve_z_range, stream_fields
 
     cfg = preset(a.preset)
     if a.set:
         cfg = apply_overrides(cfg, a.set)
-    kw = dict(models_dir=str(models), crop_size=cfg.model.crop_size, batch_size=cfg.stream.batch_size, seed=0,
-              workers=0, obj_ids=tuple(a.obj_ids), augment=cfg.stream.augment)
-    kw.update(cfg.stream.set_scene_fields())
-    if cfg.model.pe_turns:
-        kw["pe_turns"] = True
-    if cfg.loss.w_dense > 0 or cfg.loss.w_dense_xyz > 0:
-        kw["dense"] = True
-        kw["dense_xyz"] = bool(cfg.model.dense_xyz)
-    scfg = StreamConfig(**kw)
-    if cfg.loss.z_norm == "focal":
-        z_range = tuple(float(x) for x in delta_z_range(scfg, focal_ref=F_REF))
-    else:
-        z_range = tuple(float(x) for x in delta_z_range(scfg))
+    cfg = cfg.replace(stream=dataclasses.replace(cfg.stream, obj_ids=tuple(a.obj_ids)))
+    kw = stream_fields(cfg, models, workers=0)
+    kw.pop("curriculum", None)  # the full stream, as after the curriculum
+    kw["models_dir"] = str(kw["models_dir"])
+    scfg = StreamConfig(batch_size=cfg.stream.batch_size, seed=0, **kw)
+    z_range = resolve_z_range(cfg, scfg, delta_z_range)
     cfg = cfg.replace(model=dataclasses.replace(cfg.model, n_objects=len(a.obj_ids)), z_range=z_range)
     with CropStream(scfg) as s:
         batches = [jax.device_put(dict(s.batch(i))) for i in range(4)]

@@ -236,6 +236,42 @@ def _global_batch(batch: dict[str, Any], sharding: NamedSharding, local_bs: int,
 
 
 # -- the program ----------------------------------------------------------------------------------
+def stream_fields(cfg: TrainConfig, models_dir: str | os.PathLike, workers: int | None) -> dict[str, Any]:
+    """The crop stream's fields of a training config, all but the batch size and the seed (what
+    :func:`train` passes to ``DataFns.stream_config``; tools that render a config's batches
+    outside a run use the same)."""
+    from sc6d_jax.data._stream import PASSED_WHEN_SET
+
+    common: dict[str, Any] = dict(
+        models_dir=Path(models_dir), crop_size=cfg.model.crop_size, workers=workers,
+        obj_ids=cfg.stream.obj_ids, augment=cfg.stream.augment,
+    )
+    common.update(cfg.stream.set_scene_fields())  # None = the stream's default
+    if cfg.curriculum_steps:
+        common["curriculum"] = cfg.curriculum_steps
+    if getattr(cfg.loss, "w_dense", 0) > 0 or getattr(cfg.loss, "w_dense_xyz", 0) > 0:
+        common["dense"] = True
+    if getattr(cfg.model, "dense_xyz", False) and common.get("dense"):
+        common["dense_xyz"] = True
+    if getattr(cfg.model, "pe_turns", False):
+        common["pe_turns"] = True
+    for name in PASSED_WHEN_SET:  # stream options, when on
+        if getattr(cfg.stream, name):
+            common[name] = getattr(cfg.stream, name)
+    return common
+
+
+def resolve_z_range(cfg: TrainConfig, stream_cfg: Any, z_range_fn: Callable[..., Any]) -> tuple[float, float]:
+    """The depth-code range of ``cfg``'s stream ``stream_cfg`` by ``z_range_fn`` (e.g.
+    ``sc6d_jax.data.delta_z_range``), normalised by the reference focal length where the loss
+    normalises the code so (``loss.z_norm="focal"``)."""
+    if getattr(cfg.loss, "z_norm", "none") == "focal":
+        from sc6d_jax.model import F_REF
+
+        return tuple(float(x) for x in z_range_fn(stream_cfg, focal_ref=F_REF))
+    return tuple(float(x) for x in z_range_fn(stream_cfg))
+
+
 def train(
     cfg: TrainConfig,
     models_dir: str | os.PathLike,
@@ -312,36 +348,14 @@ def train(
     if gbs % ndev:
         raise ValueError(f"batch size {gbs} is not divisible by the number of devices ({ndev})")
     local_bs = gbs // pcount
-    common = dict(
-        models_dir=models_dir, crop_size=cfg.model.crop_size, workers=workers,
-        obj_ids=cfg.stream.obj_ids, augment=cfg.stream.augment,
-    )
-    common.update(cfg.stream.set_scene_fields())  # None = the stream's default
-    if cfg.curriculum_steps:
-        common["curriculum"] = cfg.curriculum_steps
-    if getattr(cfg.loss, "w_dense", 0) > 0 or getattr(cfg.loss, "w_dense_xyz", 0) > 0:
-        common["dense"] = True
-    if getattr(cfg.model, "dense_xyz", False) and common.get("dense"):
-        common["dense_xyz"] = True
-    if getattr(cfg.model, "pe_turns", False):
-        common["pe_turns"] = True
-    from sc6d_jax.data._stream import PASSED_WHEN_SET
-
-    for name in PASSED_WHEN_SET:  # stream options, when on
-        if getattr(cfg.stream, name):
-            common[name] = getattr(cfg.stream, name)
+    common = stream_fields(cfg, models_dir, workers)
     scfg = data_fns.stream_config(batch_size=local_bs, seed=_process_seed(cfg.seed, pidx, pcount), **common)
     stream = data_fns.stream(scfg, start)
     try:
         obj_ids = tuple(int(i) for i in stream.obj_ids)
         if cfg.z_range is None:
             zcfg = scfg if pcount == 1 else data_fns.stream_config(batch_size=gbs, seed=cfg.seed, **common)
-            if getattr(cfg.loss, "z_norm", "none") == "focal":
-                from sc6d_jax.model import F_REF
-
-                z_range = tuple(float(x) for x in data_fns.z_range(zcfg, focal_ref=F_REF))
-            else:
-                z_range = tuple(float(x) for x in data_fns.z_range(zcfg))
+            z_range = resolve_z_range(cfg, zcfg, data_fns.z_range)
         else:
             z_range = cfg.z_range
         cfg = cfg.replace(
