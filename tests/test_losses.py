@@ -516,3 +516,106 @@ def test_rotation_grid_classifier_reads_the_rotation_head_and_its_loss():
         LossConfig(w_rot_cls=-1.0)
     with pytest.raises(ValueError, match="size"):
         rot_cls_grid(4)
+
+
+def test_view_head_decodes_the_clean_view_from_the_rotation_head_and_its_bootstrapped_loss():
+    """model.view_head=V adds a linear decoder of the rotation head's hidden layer to a (V,V,3)
+    view (the other parameters are drawn as without it); loss.w_view is the mean over crops of
+    the mean of each crop's largest per-pixel squared errors against view / 255, found by hand."""
+    from sc6d_jax.model import apply, view_loss
+    from sc6d_jax.model._pose_decoder import pose_decoder
+
+    V = 8
+    mcfg = dataclasses.replace(CFG, view_head=V)
+    p0, p = init(jax.random.key(0), CFG), init(jax.random.key(0), mcfg)
+    assert set(p) == set(p0) | {"view_head"} and p["view_head"]["w"].shape == (CFG.head_hidden, V * V * 3)
+    for a, b in zip(jax.tree.leaves(p0), jax.tree.leaves({k: v for k, v in p.items() if k != "view_head"})):
+        np.testing.assert_array_equal(a, b)
+    rng = np.random.default_rng(3)
+    p = {**p, "view_head": jax.tree.map(lambda a: jnp.asarray(rng.normal(size=a.shape).astype(np.float32) * 0.1),
+                                        p["view_head"])}
+    batch = _batch(mcfg)
+    batch["view"] = rng.integers(0, 256, (4, V, V, 3), dtype=np.uint8)
+    inner = {}
+
+    def spy(*args, **kw):
+        res = pose_decoder(*args, **kw)
+        inner["h"] = res[3]
+        return res
+
+    import sc6d_jax.model._network as net
+
+    orig = net.pose_decoder
+    net.pose_decoder = spy
+    try:
+        out = apply(p, mcfg, batch["rgb"], batch["pe"], batch["obj_idx"])
+    finally:
+        net.pose_decoder = orig
+    h = np.asarray(inner["h"], np.float64)
+    want_view = (h @ np.asarray(p["view_head"]["w"], np.float64) + np.asarray(p["view_head"]["b"])).reshape(4, V, V, 3)
+    np.testing.assert_allclose(np.asarray(out["view"]), want_view, rtol=1e-4, atol=1e-4)
+    err = ((want_view - batch["view"] / 255.0) ** 2).sum(-1).reshape(4, -1)
+    k = int(np.ceil(0.25 * V * V))
+    want = np.mean(np.sort(err, axis=1)[:, -k:])
+    np.testing.assert_allclose(float(view_loss(out["view"], batch["view"], 0.25)), want, rtol=1e-4)
+    np.testing.assert_allclose(float(view_loss(out["view"], batch["view"], 1.0)), err.mean(), rtol=1e-4)
+    lcfg = LossConfig(n_negatives=8, w_view=2.0)
+    loss, aux = jax.jit(loss_fn, static_argnums=(1, 2, 5))(p, mcfg, lcfg, batch, jax.random.key(1), Z_RANGE)
+    np.testing.assert_allclose(float(aux["loss_view"]), want, rtol=1e-4)
+    rest = lcfg.w_rot * aux["loss_rot"] + lcfg.w_xy * aux["loss_xy"] + lcfg.w_z * aux["loss_z"] + lcfg.w_mask * aux["loss_mask"]
+    np.testing.assert_allclose(float(loss), float(rest + 2.0 * aux["loss_view"]), rtol=1e-5)
+    with pytest.raises(ValueError, match="model.view_head"):
+        loss_fn(p0, CFG, lcfg, batch, jax.random.key(1), Z_RANGE)
+    with pytest.raises(ValueError, match="'view'"):
+        loss_fn(p, mcfg, lcfg, {k: v for k, v in batch.items() if k != "view"}, jax.random.key(1), Z_RANGE)
+    for bad in (-1, 5, 2.5):
+        with pytest.raises(ValueError, match="view_head"):
+            dataclasses.replace(CFG, view_head=bad)
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError, match="view_top"):
+            LossConfig(view_top=bad)
+    with pytest.raises(ValueError, match="w_view"):
+        LossConfig(w_view=-1.0)
+
+
+def test_view_head_from_the_map_decodes_each_cell_to_its_patch():
+    """model.view_from="map": each cell of the m x m map the rotation head flattens is decoded
+    linearly to its (V/m)^2 patch of the view, found here by hand through the pose decoder."""
+    from sc6d_jax.model import apply
+    from sc6d_jax.model._pose_decoder import head_map_size, pose_decoder
+
+    base = dataclasses.replace(CFG, pose_downsample=1)  # the heads read a 2 x 2 map
+    m = head_map_size(base)
+    assert m == 2
+    V = 4 * m
+    mcfg = dataclasses.replace(base, view_head=V, view_from="map")
+    p = init(jax.random.key(0), mcfg)
+    assert p["view_head"]["w"].shape == (CFG.pose_width, 3 * 16)
+    rng = np.random.default_rng(4)
+    p = {**p, "view_head": jax.tree.map(lambda a: jnp.asarray(rng.normal(size=a.shape).astype(np.float32)), p["view_head"])}
+    batch = _batch(mcfg)
+    inner = {}
+
+    def spy(*args, **kw):
+        res = pose_decoder(*args, **kw)
+        inner["map"] = res[4]
+        return res
+
+    import sc6d_jax.model._network as net
+
+    orig = net.pose_decoder
+    net.pose_decoder = spy
+    try:
+        out = apply(p, mcfg, batch["rgb"], batch["pe"], batch["obj_idx"])
+    finally:
+        net.pose_decoder = orig
+    hm = np.asarray(inner["map"], np.float64)
+    assert hm.shape == (4, m, m, CFG.pose_width)
+    w, b = np.asarray(p["view_head"]["w"], np.float64), np.asarray(p["view_head"]["b"], np.float64)
+    for i, j in ((0, 0), (m - 1, 0), (m - 1, m - 1)):
+        patch = (hm[:, i, j] @ w + b).reshape(4, 4, 4, 3)
+        np.testing.assert_allclose(np.asarray(out["view"])[:, 4 * i:4 * i + 4, 4 * j:4 * j + 4], patch, rtol=1e-4, atol=1e-4)
+    with pytest.raises(ValueError, match="multiple"):
+        init(jax.random.key(0), dataclasses.replace(base, view_head=1, view_from="map"))
+    with pytest.raises(ValueError, match="view_from"):
+        dataclasses.replace(CFG, view_from="pooled")

@@ -449,3 +449,49 @@ def test_pe_turns_turns_the_pe_map_with_the_crop(models):
         if k:
             assert not np.allclose(turned["pe"][i], plain["pe"][i])
     assert n_turned > 0
+
+
+def test_clean_view_is_the_visible_target_before_colour_augmentation(models):
+    """stream.view=V returns the crop before the colour augmentation, black off the visible
+    target, averaged over blocks and turned with the crop: without augmentation it is
+    clean_view of the batch's own rgb and mask; with it, it sits on the (turned) mask and keeps
+    the render's colours although the crop's were changed."""
+    from sc6d_jax.data import clean_view
+
+    rgb = np.zeros((1, 4, 4, 3), np.uint8)
+    rgb[0, :2, :2] = (200, 100, 40)
+    rgb[0, 2:, 2:] = 255
+    mask = np.zeros((1, 4, 4), np.uint8)
+    mask[0, :2, :2] = 1
+    mask[0, 3, 3] = 1  # one pixel of four in the lower right block
+    v = clean_view(rgb, mask, 2)
+    assert v.shape == (1, 2, 2, 3) and v.dtype == np.uint8
+    np.testing.assert_array_equal(v[0, 0, 0], (200, 100, 40))
+    np.testing.assert_array_equal(v[0, 1, 1], (64, 64, 64))  # 255 / 4, rounded
+    assert v[0, 0, 1].sum() == 0 and v[0, 1, 0].sum() == 0
+    with pytest.raises(ValueError, match="divide"):
+        clean_view(rgb, mask, 3)
+
+    kw = dict(models_dir=str(models), crop_size=32, batch_size=8, workers=0, obj_ids=(1, 13))
+    with CropStream(StreamConfig(**kw, augment=False, view=16)) as s:
+        b = s.batch(2)
+    assert b["view"].shape == (8, 16, 16, 3) and b["view"].dtype == np.uint8
+    np.testing.assert_array_equal(b["view"], clean_view(b["rgb"], b["mask_visib"], 16))
+    with CropStream(StreamConfig(**kw, augment=True, view=16)) as s:
+        a = s.batch(2)
+    with CropStream(StreamConfig(**kw, augment=True)) as s:
+        assert "view" not in s.batch(2)
+    np.testing.assert_array_equal(a["mask_visib"].shape, b["mask_visib"].shape)
+    turned = changed = 0
+    for i in range(8):
+        D = a["R_allo"][i] @ b["R_allo"][i].T
+        k = int(np.round(np.arctan2(D[1, 0], D[0, 0]) / (np.pi / 2))) % 4
+        turned += k != 0
+        # the augmented batch's view is the plain batch's turned by the same quarter turns
+        np.testing.assert_array_equal(a["view"][i], np.rot90(b["view"][i], -k))
+        changed += not np.array_equal(a["rgb"][i], np.rot90(b["rgb"][i], -k))
+        cover = a["mask_visib"][i].reshape(16, 2, 16, 2).max(axis=(1, 3))
+        assert not a["view"][i][cover == 0].any()
+    assert turned > 0 and changed > 0
+    with pytest.raises(ValueError, match="view"):
+        StreamConfig(**kw, view=5)

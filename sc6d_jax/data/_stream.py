@@ -100,6 +100,12 @@ class StreamConfig:
         dense_xyz: with ``dense``, three more channels: the visible surface's points in the
             object's own frame (``dense_targets(xyz=True)``); ambiguous for a symmetric
             object, as any object-frame target is.
+        view: side V of a clean view of the target returned as ``view`` uint8 (B,V,V,3)
+            (0 = none): the rendered crop before the colour augmentation, black wherever the
+            target is not visible (background, occluders), averaged over (S/V)^2 blocks and
+            turned with the crop (``clean_view``). What an augmented crop shows of the object
+            itself, as the Augmented Autoencoder's reconstruction target; no symmetry labels (two
+            poses that look alike give one view). V must divide S.
         curriculum: number of batches over which the task grows from easy to the full setting
             (0 = full from the start). At batch b the difficulty is d = min(1, b / curriculum):
             a crop gets a textured background with probability d (else a plain one) and
@@ -189,6 +195,7 @@ class StreamConfig:
     curriculum: int = 0
     dense: bool = False
     dense_xyz: bool = False
+    view: int = 0
     materials: bool = False
     resample: bool = False
     sensor: bool = False
@@ -208,6 +215,8 @@ class StreamConfig:
         object.__setattr__(self, "placement", unit_range(self.placement, "placement"))
         if self.dense_xyz and not self.dense:
             raise ValueError("dense_xyz adds channels to the dense targets: it needs dense=True")
+        if not isinstance(self.view, int) or self.view < 0 or (self.view and self.crop_size % self.view):
+            raise ValueError(f"view must be 0 (off) or a positive int dividing crop_size {self.crop_size}, got {self.view!r}")
         if self.background not in ("textured", "plain"):
             raise ValueError(f"background must be 'textured' or 'plain', got {self.background!r}")
         if self.box_source not in ("amodal", "visible"):
@@ -395,6 +404,18 @@ def dense_targets(
     dense = np.concatenate(parts, axis=-1)
     dense[wsum == 0] = 0.0
     return dense.astype(np.float32), (wsum / (f * f)).astype(np.float32)
+
+
+def clean_view(rgb: np.ndarray, mask: np.ndarray, side: int) -> np.ndarray:
+    """The target alone as the crop shows it: uint8 (B,side,side,3) of ``rgb`` (B,S,S,3) where
+    ``mask`` (B,S,S) is set and black elsewhere, averaged over (S/side)^2 blocks (rounded)."""
+    B, S = rgb.shape[:2]
+    if S % side:
+        raise ValueError(f"clean_view: side {side} must divide the crop size {S}")
+    f = S // side
+    x = rgb.astype(np.float32) * (np.asarray(mask) > 0)[..., None]
+    x = x.reshape(B, side, f, side, f, 3).mean(axis=(2, 4))
+    return np.clip(np.rint(x), 0, 255).astype(np.uint8)
 
 
 def resolve_obj_ids(cfg: StreamConfig) -> list[int]:
@@ -672,6 +693,7 @@ class _Worker:
                 np.stack(depths), mask, T @ K, R, R_allo, t, np.array([self.diameters[p.obj_id] for p in poses]),
                 xyz=cfg.dense_xyz,
             )
+        view = clean_view(rgb, mask, cfg.view) if cfg.view else None  # before the colour augmentation
         outside = ~inside_image(T, S) if cfg.image_border else None
         if outside is not None and not cfg.augment:
             rgb[outside] = 0
@@ -684,6 +706,8 @@ class _Worker:
                 if k:  # turn the crop by k*90 deg clockwise == Rz(+90k) about the optical axis
                     rgb[j] = np.rot90(rgb[j], -k)
                     mask[j] = np.rot90(mask[j], -k)
+                    if view is not None:
+                        view[j] = np.rot90(view[j], -k)
                     c, s_ = [(1, 0), (0, 1), (-1, 0), (0, -1)][k]
                     Rz = np.array([[c, -s_, 0], [s_, c, 0], [0, 0, 1]], np.float64)
                     R_allo[j] = Rz @ R_allo[j]
@@ -695,6 +719,8 @@ class _Worker:
                         dense[j, ..., :3] = dense[j, ..., :3] @ Rz.T.astype(np.float32)
                         dense_w[j] = np.rot90(dense_w[j], -k)
         extra = {} if dense is None else {"dense": dense, "dense_w": dense_w}
+        if view is not None:
+            extra["view"] = view
         return dict(
             **extra,
             rgb=rgb, pe=pe, mask_visib=mask.astype(np.uint8), R_allo=R_allo.astype(np.float32),
@@ -804,7 +830,8 @@ class CropStream:
     Keys: rgb uint8 (B,S,S,3), pe float32 (B,S,S,2), mask_visib uint8 (B,S,S), R_allo, R (B,3,3),
     t (B,3) mm, K and K_B (B,3,3), delta_xy (B,2), delta_z (B,), obj_idx / obj_id int32 (B,),
     center (B,2) and side (B,) of the crop box in the image, difficulty (B,) the curriculum's
-    difficulty of the batch (1 = full); with dense=True also dense (B,S/4,S/4,4), dense_w (B,S/4,S/4).
+    difficulty of the batch (1 = full); with dense=True also dense (B,S/4,S/4,4), dense_w (B,S/4,S/4);
+    with view=V also view uint8 (B,V,V,3).
     """
 
     def __init__(self, cfg: StreamConfig, start_batch: int = 0) -> None:

@@ -24,6 +24,7 @@ from ._losses import (
     info_nce,
     loss_fn,
     predict_z,
+    view_loss,
 )
 from ._weights import load_resnet_weights
 from ._rotation import encode_rotations, rotation_features, rotation_logits
@@ -47,6 +48,7 @@ __all__ = [
     "info_nce",
     "loss_fn",
     "predict_z",
+    "view_loss",
     "BACKBONES",
     "ModelConfig",
     "apply",

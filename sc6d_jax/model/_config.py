@@ -90,6 +90,18 @@ class ModelConfig:
       over distinct classes does not settle on the mean of an ambiguous target. No symmetry
       labels: for a symmetric object it learns a spread over the equivalent classes. Not used
       at inference.
+    - view_head: side V of an auxiliary linear decoder from the rotation head's hidden layer to a
+      clean view of the target (``out["view"]`` (B,V,V,3) in [0, 1] units), trained by
+      ``LossConfig.w_view`` against the stream's ``view`` (the crop before colour augmentation,
+      black off the visible target): the Augmented Autoencoder's reconstruction, asking the
+      vector the rotation embedding is read from to carry everything the object shows, including
+      the small parts that break a near-symmetry (the dumbbell's cube), which InfoNCE alone can
+      leave out while it has a ring of equally good rotations. No symmetry labels (alike views
+      give one target). 0 = off. Not used at inference.
+    - view_from: what the view head decodes: "hidden" (the rotation head's hidden layer, one
+      linear map to the whole view) or "map" (the m x m map the rotation head flattens, each
+      cell linearly to its (V/m)^2 patch of the view: local, as a decoder of the spatial layout
+      the head reads; V must be a multiple of m).
     - pose_downsample: stride-2 convs of the pose decoder before its dilated block (2, paper:
       the block runs at S/16 and the heads see S/32). 1 runs the block at S/8, the heads at
       S/16 (the second conv keeps its weights, with stride 1): for a 64-px crop the heads read
@@ -132,6 +144,8 @@ class ModelConfig:
     pose_downsample: int = 2
     rot_readout: bool = False
     rot_cls: int = 0
+    view_head: int = 0
+    view_from: str = "hidden"
     z_rot: bool = False
     pe_turns: bool = False
     z_ray_input: bool = False
@@ -165,6 +179,11 @@ class ModelConfig:
             raise ValueError(f"rot_cls must be an int >= 0 (0 = off), got {self.rot_cls!r}")
         if 0 < self.rot_cls < 8:
             raise ValueError(f"rot_cls must be 0 (off) or at least 8 grid rotations, got {self.rot_cls}")
+        if not isinstance(self.view_head, int) or self.view_head < 0 or (self.view_head and self.crop_size % self.view_head):
+            raise ValueError(f"view_head must be 0 (off) or a positive int dividing crop_size {self.crop_size}, "
+                             f"got {self.view_head!r}")
+        if self.view_from not in ("hidden", "map"):
+            raise ValueError(f"view_from must be 'hidden' or 'map', got {self.view_from!r}")
         if self.dense_xyz and not self.dense_head:
             raise ValueError("dense_xyz adds channels to the dense head: it needs dense_head=True")
 

@@ -112,6 +112,14 @@ class LossConfig:
       the visible blocks, weighted by their visible fraction (0 = off, paper).
     - w_dense_xyz: weight of the L1 of the object-frame surface points (``ModelConfig.dense_xyz``
       and the stream's ``dense_xyz`` targets), over the same blocks (0 = off).
+    - w_view: weight of the clean-view reconstruction (needs ``ModelConfig.view_head`` and the
+      stream's ``view``): squared error per pixel of ``out["view"]`` against ``view / 255``,
+      averaged over the ``view_top`` fraction of each crop's pixels with the largest errors
+      (the Augmented Autoencoder's bootstrapped L2, factor 4 = 0.25: the object's small parts
+      count, not only the black around it). 0 = off.
+    - view_until: the fraction of the run's steps during which the view loss counts (1 = all;
+      0.5 = the first half, then its weight is 0): the training step passes the weight in the
+      batch as ``view_weight``.
     - mask_downsample: "area" (default: the S x S visible mask averaged over 4x4 blocks, a
       soft target in [0, 1]) or "nearest" (every 4th pixel, offset 2: a binary target).
     """
@@ -144,6 +152,9 @@ class LossConfig:
     axis_min_deg: float = 30.0
     w_rot_readout: float = 0.0
     w_rot_cls: float = 0.0
+    w_view: float = 0.0
+    view_top: float = 0.25
+    view_until: float = 1.0
     z_rot_noise_deg: float = 0.0
     z_rot_separate: bool = False
 
@@ -177,8 +188,12 @@ class LossConfig:
             raise ValueError(f"tau must be > 0, got {self.tau}")
         if not isinstance(self.n_negatives, int) or self.n_negatives < 1:
             raise ValueError(f"n_negatives must be a positive int, got {self.n_negatives!r}")
+        if not 0.0 < self.view_until <= 1.0:
+            raise ValueError(f"view_until must be a fraction of the run in (0, 1], got {self.view_until!r}")
+        if not 0.0 < self.view_top <= 1.0:
+            raise ValueError(f"view_top must be a fraction in (0, 1], got {self.view_top!r}")
         for name in ("w_rot", "w_xy", "w_z", "w_mask", "w_z_l1", "w_dense", "w_dense_xyz", "w_rot_readout", "w_rot_cls",
-                     "focal_alpha", "focal_gamma", "z_rot_noise_deg"):
+                     "w_view", "focal_alpha", "focal_gamma", "z_rot_noise_deg"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 
@@ -399,6 +414,13 @@ def loss_fn(
         raise ValueError("loss.w_rot_cls > 0 needs a model with model.rot_cls > 0 (its grid size)")
     if lcfg.w_rot_readout > 0 and not mcfg.rot_readout:
         raise ValueError("loss.w_rot_readout > 0 needs a model with model.rot_readout=True")
+    if lcfg.w_view > 0:
+        if not mcfg.view_head:
+            raise ValueError("loss.w_view > 0 needs a model with model.view_head > 0 (the view's side)")
+        v = mcfg.view_head
+        if "view" not in batch or tuple(jnp.shape(batch["view"]))[1:] != (v, v, 3):
+            raise ValueError(f"loss.w_view > 0 needs a batch with 'view' (B,{v},{v},3) (a stream with view={v}), got "
+                             f"{None if 'view' not in batch else tuple(jnp.shape(batch['view']))}")
     d_lo, d_hi = z_range
     obj_idx = jnp.asarray(batch["obj_idx"], jnp.int32)
     target = downsample_mask(jnp.asarray(batch["mask_visib"]), 4, lcfg.mask_downsample)
@@ -466,6 +488,9 @@ def loss_fn(
         want = jnp.swapaxes(R_gt[:, :, :2], 1, 2).reshape(R_gt.shape[0], 6)  # the two columns, one after the other
         extra["loss_rot_readout"] = jnp.mean(jnp.sum(jnp.square(out["rot_6d"] - want), axis=-1))
         loss = loss + lcfg.w_rot_readout * extra["loss_rot_readout"]
+    if lcfg.w_view > 0:
+        extra["loss_view"] = view_loss(out["view"], batch["view"], lcfg.view_top)
+        loss = loss + lcfg.w_view * jnp.asarray(batch.get("view_weight", 1.0), jnp.float32) * extra["loss_view"]
     if lcfg.w_rot_cls > 0:
         G = jnp.asarray(rot_cls_grid(mcfg.rot_cls))
         nearest = jnp.argmax(jnp.einsum("kij,bij->bk", G, R_gt), axis=-1)  # max trace(G^T R) = min angle
@@ -484,6 +509,16 @@ def loss_fn(
         **extra,
     }
     return loss, aux
+
+
+def view_loss(pred: jax.Array, view: jax.Array, top: float = 0.25) -> jax.Array:
+    """Bootstrapped L2 of a predicted clean view (B,V,V,3) against the stream's ``view`` uint8
+    (B,V,V,3) (divided by 255): per pixel the squared error summed over the colour channels, the
+    mean of each crop's ``ceil(top * V * V)`` largest, averaged over the batch."""
+    target = jnp.asarray(view, jnp.float32) / 255.0
+    err = jnp.sum(jnp.square(pred - target), axis=-1).reshape(pred.shape[0], -1)
+    k = max(1, int(math.ceil(top * err.shape[1])))
+    return jnp.mean(jax.lax.top_k(err, k)[0]) if k < err.shape[1] else jnp.mean(err)
 
 
 def _check_dense(mcfg: ModelConfig, lcfg: LossConfig, batch: dict) -> None:

@@ -11,7 +11,7 @@ import numpy as np
 from ._config import ModelConfig
 from ._layers import dense, init_dense, make_rng, split
 from ._encoder import backbone, decoder, init_backbone, init_decoder
-from ._pose_decoder import init_pose_decoder, pose_decoder
+from ._pose_decoder import head_map_size, init_pose_decoder, pose_decoder
 from ._rotation import _init_stacked_dense, _l2n, init_rotation_head, init_z_prior, z_prior_logits
 
 #: ImageNet statistics (torchvision), so that converted ImageNet weights see familiar inputs.
@@ -46,6 +46,14 @@ def init(key: jax.Array, cfg: ModelConfig) -> dict:
     if cfg.rot_cls:  # the next child
         n = len(rot_cls_grid(cfg.rot_cls))
         params["rot_cls"] = _init_stacked_dense(split(rng, 1)[0], cfg.n_objects, cfg.head_hidden, n, scale=0.01)
+    if cfg.view_head:  # the next child
+        if cfg.view_from == "map":
+            m = head_map_size(cfg)
+            if cfg.view_head % m:
+                raise ValueError(f"view_from='map': view_head {cfg.view_head} must be a multiple of the head's map side {m}")
+            params["view_head"] = init_dense(split(rng, 1)[0], cfg.pose_width, 3 * (cfg.view_head // m) ** 2, scale=0.01)
+        else:
+            params["view_head"] = init_dense(split(rng, 1)[0], cfg.head_hidden, 3 * cfg.view_head**2, scale=0.01)
     return jax.tree.map(jnp.asarray, params)
 
 
@@ -102,7 +110,8 @@ def apply(
     Returns {'rot_emb' (B,emb_dim) unit-norm image embedding, 'delta_xy' (B,2),
     'z_logits' (B,n_z_bins), 'mask_logit' (B,S/4,S/4)}, and 'dense' (B,S/4,S/4,4) with
     cfg.dense_head ((B,S/4,S/4,7) with cfg.dense_xyz), 'rot_6d' (B,6) with cfg.rot_readout,
-    'rot_cls_logits' (B,N) with cfg.rot_cls (N = len(rot_cls_grid(cfg.rot_cls))).
+    'rot_cls_logits' (B,N) with cfg.rot_cls (N = len(rot_cls_grid(cfg.rot_cls))), 'view' (B,V,V,3)
+    with cfg.view_head = V (the clean view in [0, 1] units, unbounded).
     """
     _check_inputs(cfg, rgb, pe, obj_idx)
     obj_idx = jnp.asarray(obj_idx, jnp.int32)
@@ -120,12 +129,21 @@ def apply(
             mask, on = teacher_gate
             gate = jnp.where(jnp.asarray(on)[:, None, None], jnp.asarray(mask, gate.dtype), gate)
         feat = feat * gate[..., None]
-    rot, dxy, zl, h_rot = pose_decoder(params["pose_decoder"], cfg, feat, mask_logit, pe if cfg.use_pe else None,
-                                       return_hidden=True)
+    rot, dxy, zl, h_rot, map_rot = pose_decoder(params["pose_decoder"], cfg, feat, mask_logit,
+                                                pe if cfg.use_pe else None, return_hidden=True, return_map=True)
     emb = _l2n(rot)
     if cfg.rot_cls:
         rc = params["rot_cls"]
         extra["rot_cls_logits"] = jnp.einsum("bh,bhk->bk", h_rot, rc["w"][obj_idx]) + rc["b"][obj_idx]
+    if cfg.view_head:
+        v, V = params["view_head"], cfg.view_head
+        if cfg.view_from == "map":  # each cell of the head's map to its patch of the view
+            b_, m = map_rot.shape[0], map_rot.shape[1]
+            q = V // m
+            y = dense(map_rot, v["w"], v["b"]).reshape(b_, m, m, q, q, 3)
+            extra["view"] = jnp.transpose(y, (0, 1, 3, 2, 4, 5)).reshape(b_, V, V, 3)
+        else:
+            extra["view"] = dense(h_rot, v["w"], v["b"]).reshape(h_rot.shape[0], V, V, 3)
     if cfg.rot_readout:
         ro = params["rot_readout"]
         extra["rot_6d"] = jnp.einsum("be,bes->bs", emb, ro["w"][obj_idx]) + ro["b"][obj_idx]

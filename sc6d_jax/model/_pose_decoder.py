@@ -24,11 +24,16 @@ from ._layers import conv_output_size, dense, group_norm, init_dense, init_gn, n
 DILATIONS = (2, 3, 4, 5, 6, 7)
 
 
-def _flat_size(cfg: ModelConfig) -> int:
+def head_map_size(cfg: ModelConfig) -> int:
+    """Side of the map each head flattens (the last stride-2 conv's output)."""
     s = cfg.mask_size
     for _ in range(cfg.pose_downsample + 1):
         s = conv_output_size(s, 3, 2, 1)
-    return s * s * cfg.pose_width
+    return s
+
+
+def _flat_size(cfg: ModelConfig) -> int:
+    return head_map_size(cfg) ** 2 * cfg.pose_width
 
 
 def init_pose_decoder(key: np.random.Generator, cfg: ModelConfig) -> dict:
@@ -118,10 +123,11 @@ def mask_size_features(mask_logit: jax.Array) -> jax.Array:
 
 def pose_decoder(
     params: dict, cfg: ModelConfig, feat: jax.Array, mask_logit: jax.Array, pe: jax.Array | None = None,
-    return_hidden: bool = False,
+    return_hidden: bool = False, return_map: bool = False,
 ) -> tuple[jax.Array, ...]:
     """Returns (raw rotation feature (B,emb_dim), delta_xy (B,2), z logits (B,n_z_bins)), and with
-    ``return_hidden`` also the rotation head's hidden layer (B,head_hidden).
+    ``return_hidden`` also the rotation head's hidden layer (B,head_hidden), with ``return_map``
+    then also the map the rotation head flattens (B,m,m,pose_width), m = :func:`head_map_size`.
     ``pe`` (B,S,S,2): the crops' PE maps, needed with ``cfg.z_ray_input``."""
     if (cfg.z_ray_input or cfg.z_scale_input) and pe is None:
         raise ValueError("z_ray_input and z_scale_input need the PE map (use_pe=True)")
@@ -133,10 +139,11 @@ def pose_decoder(
         branches.append(conv_gn_relu(x, p, cfg, dilation=d))
     branches.append(jnp.broadcast_to(jnp.mean(x, axis=(1, 2), keepdims=True), x.shape))
     x = jnp.concatenate(branches, axis=-1)
-    outs, hidden = [], []
+    outs, hidden, maps = [], [], []
     for name in ("rot", "xy", "z"):
         p = params[name]
         h = conv_gn_relu(x, p["conv"], cfg, stride=2)
+        maps.append(h)
         h = h.reshape(h.shape[0], -1)
         h = dense(h, p["fc"]["w"], p["fc"]["b"])
         if name == "z" and "size" in p:
@@ -148,6 +155,8 @@ def pose_decoder(
         h = jax.nn.relu(group_norm(h, p["fc_gn"]["scale"], p["fc_gn"]["bias"], num_groups(h.shape[-1], cfg.gn_groups)))
         hidden.append(h)
         outs.append(dense(h, p["out"]["w"], p["out"]["b"]))
+    if return_hidden and return_map:
+        return outs[0], outs[1], outs[2], hidden[0], maps[0]
     if return_hidden:
         return outs[0], outs[1], outs[2], hidden[0]
     return outs[0], outs[1], outs[2]

@@ -156,9 +156,12 @@ def make_train_step(
     ``finite`` (loss and gradient norm finite).  With a mesh the outputs are replicated on it.
     """
     mcfg, lcfg = cfg.model, cfg.loss
+    view_steps = int(round(getattr(lcfg, "view_until", 1.0) * cfg.steps))
 
     def step_fn(params: Any, opt_state: Any, batch: dict[str, jax.Array], step: jax.Array, base_key: jax.Array):
         key = jax.random.fold_in(base_key, step)
+        if getattr(lcfg, "w_view", 0) > 0 and view_steps < cfg.steps:  # the view loss for the first steps only
+            batch = {**batch, "view_weight": jnp.where(step < view_steps, 1.0, 0.0)}
         (loss, aux), grads = jax.value_and_grad(
             lambda p: loss_fn(p, mcfg, lcfg, batch, key, z_range), has_aux=True
         )(params)
@@ -253,6 +256,8 @@ def stream_fields(cfg: TrainConfig, models_dir: str | os.PathLike, workers: int 
         common["dense"] = True
     if getattr(cfg.model, "dense_xyz", False) and common.get("dense"):
         common["dense_xyz"] = True
+    if getattr(cfg.loss, "w_view", 0) > 0:
+        common["view"] = cfg.model.view_head
     if getattr(cfg.model, "pe_turns", False):
         common["pe_turns"] = True
     for name in PASSED_WHEN_SET:  # stream options, when on
