@@ -578,19 +578,21 @@ def test_view_head_decodes_the_clean_view_from_the_rotation_head_and_its_bootstr
         LossConfig(w_view=-1.0)
 
 
-def test_view_head_from_the_map_decodes_each_cell_to_its_patch():
-    """model.view_from="map": each cell of the m x m map the rotation head flattens is decoded
-    linearly to its (V/m)^2 patch of the view, found here by hand through the pose decoder."""
+@pytest.mark.parametrize("source", ["map", "block"])
+def test_view_head_from_a_map_decodes_each_cell_to_its_patch(source):
+    """model.view_from="map" ("block"): each cell of the m x m map the rotation head flattens (of
+    the dilated block's output that the three heads read) is decoded linearly to its (V/m)^2
+    patch of the view, found here by hand through the pose decoder."""
     from sc6d_jax.model import apply
-    from sc6d_jax.model._pose_decoder import head_map_size, pose_decoder
+    from sc6d_jax.model._pose_decoder import block_map_size, head_map_size, pose_decoder
 
-    base = dataclasses.replace(CFG, pose_downsample=1)  # the heads read a 2 x 2 map
-    m = head_map_size(base)
-    assert m == 2
-    V = 4 * m
-    mcfg = dataclasses.replace(base, view_head=V, view_from="map")
+    base = dataclasses.replace(CFG, pose_downsample=1)  # the heads read a 2 x 2 map, the block is 4 x 4
+    assert (head_map_size(base), block_map_size(base)) == (2, 4)
+    m, c = (2, CFG.pose_width) if source == "map" else (4, 8 * CFG.pose_width)
+    V, q = 8, 8 // m
+    mcfg = dataclasses.replace(base, view_head=V, view_from=source)
     p = init(jax.random.key(0), mcfg)
-    assert p["view_head"]["w"].shape == (CFG.pose_width, 3 * 16)
+    assert p["view_head"]["w"].shape == (c, 3 * q * q)
     rng = np.random.default_rng(4)
     p = {**p, "view_head": jax.tree.map(lambda a: jnp.asarray(rng.normal(size=a.shape).astype(np.float32)), p["view_head"])}
     batch = _batch(mcfg)
@@ -598,7 +600,7 @@ def test_view_head_from_the_map_decodes_each_cell_to_its_patch():
 
     def spy(*args, **kw):
         res = pose_decoder(*args, **kw)
-        inner["map"] = res[4]
+        inner["map"] = res[4] if source == "map" else res[5]
         return res
 
     import sc6d_jax.model._network as net
@@ -610,12 +612,12 @@ def test_view_head_from_the_map_decodes_each_cell_to_its_patch():
     finally:
         net.pose_decoder = orig
     hm = np.asarray(inner["map"], np.float64)
-    assert hm.shape == (4, m, m, CFG.pose_width)
+    assert hm.shape == (4, m, m, c)
     w, b = np.asarray(p["view_head"]["w"], np.float64), np.asarray(p["view_head"]["b"], np.float64)
     for i, j in ((0, 0), (m - 1, 0), (m - 1, m - 1)):
-        patch = (hm[:, i, j] @ w + b).reshape(4, 4, 4, 3)
-        np.testing.assert_allclose(np.asarray(out["view"])[:, 4 * i:4 * i + 4, 4 * j:4 * j + 4], patch, rtol=1e-4, atol=1e-4)
+        patch = (hm[:, i, j] @ w + b).reshape(4, q, q, 3)
+        np.testing.assert_allclose(np.asarray(out["view"])[:, q * i:q * i + q, q * j:q * j + q], patch, rtol=1e-4, atol=1e-4)
     with pytest.raises(ValueError, match="multiple"):
-        init(jax.random.key(0), dataclasses.replace(base, view_head=1, view_from="map"))
+        init(jax.random.key(0), dataclasses.replace(base, view_head=2 if source == "block" else 1, view_from=source))
     with pytest.raises(ValueError, match="view_from"):
         dataclasses.replace(CFG, view_from="pooled")

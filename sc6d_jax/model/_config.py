@@ -99,9 +99,10 @@ class ModelConfig:
       leave out while it has a ring of equally good rotations. No symmetry labels (alike views
       give one target). 0 = off. Not used at inference.
     - view_from: what the view head decodes: "hidden" (the rotation head's hidden layer, one
-      linear map to the whole view) or "map" (the m x m map the rotation head flattens, each
+      linear map to the whole view), "map" (the m x m map the rotation head flattens, each
       cell linearly to its (V/m)^2 patch of the view: local, as a decoder of the spatial layout
-      the head reads; V must be a multiple of m).
+      the head reads; V must be a multiple of m) or "block" (the same from the dilated block's
+      output, 8 pose_width channels at S/8 in the cpu preset, that all three heads read).
     - pose_downsample: stride-2 convs of the pose decoder before its dilated block (2, paper:
       the block runs at S/16 and the heads see S/32). 1 runs the block at S/8, the heads at
       S/16 (the second conv keeps its weights, with stride 1): for a 64-px crop the heads read
@@ -182,8 +183,8 @@ class ModelConfig:
         if not isinstance(self.view_head, int) or self.view_head < 0 or (self.view_head and self.crop_size % self.view_head):
             raise ValueError(f"view_head must be 0 (off) or a positive int dividing crop_size {self.crop_size}, "
                              f"got {self.view_head!r}")
-        if self.view_from not in ("hidden", "map"):
-            raise ValueError(f"view_from must be 'hidden' or 'map', got {self.view_from!r}")
+        if self.view_from not in ("hidden", "map", "block"):
+            raise ValueError(f"view_from must be 'hidden', 'map' or 'block', got {self.view_from!r}")
         if self.dense_xyz and not self.dense_head:
             raise ValueError("dense_xyz adds channels to the dense head: it needs dense_head=True")
 

@@ -11,7 +11,7 @@ import numpy as np
 from ._config import ModelConfig
 from ._layers import dense, init_dense, make_rng, split
 from ._encoder import backbone, decoder, init_backbone, init_decoder
-from ._pose_decoder import head_map_size, init_pose_decoder, pose_decoder
+from ._pose_decoder import block_map_size, head_map_size, init_pose_decoder, pose_decoder
 from ._rotation import _init_stacked_dense, _l2n, init_rotation_head, init_z_prior, z_prior_logits
 
 #: ImageNet statistics (torchvision), so that converted ImageNet weights see familiar inputs.
@@ -47,11 +47,11 @@ def init(key: jax.Array, cfg: ModelConfig) -> dict:
         n = len(rot_cls_grid(cfg.rot_cls))
         params["rot_cls"] = _init_stacked_dense(split(rng, 1)[0], cfg.n_objects, cfg.head_hidden, n, scale=0.01)
     if cfg.view_head:  # the next child
-        if cfg.view_from == "map":
-            m = head_map_size(cfg)
+        if cfg.view_from in ("map", "block"):
+            m, c = (head_map_size(cfg), cfg.pose_width) if cfg.view_from == "map" else (block_map_size(cfg), 8 * cfg.pose_width)
             if cfg.view_head % m:
-                raise ValueError(f"view_from='map': view_head {cfg.view_head} must be a multiple of the head's map side {m}")
-            params["view_head"] = init_dense(split(rng, 1)[0], cfg.pose_width, 3 * (cfg.view_head // m) ** 2, scale=0.01)
+                raise ValueError(f"view_from={cfg.view_from!r}: view_head {cfg.view_head} must be a multiple of the map's side {m}")
+            params["view_head"] = init_dense(split(rng, 1)[0], c, 3 * (cfg.view_head // m) ** 2, scale=0.01)
         else:
             params["view_head"] = init_dense(split(rng, 1)[0], cfg.head_hidden, 3 * cfg.view_head**2, scale=0.01)
     return jax.tree.map(jnp.asarray, params)
@@ -129,7 +129,7 @@ def apply(
             mask, on = teacher_gate
             gate = jnp.where(jnp.asarray(on)[:, None, None], jnp.asarray(mask, gate.dtype), gate)
         feat = feat * gate[..., None]
-    rot, dxy, zl, h_rot, map_rot = pose_decoder(params["pose_decoder"], cfg, feat, mask_logit,
+    rot, dxy, zl, h_rot, map_rot, block = pose_decoder(params["pose_decoder"], cfg, feat, mask_logit,
                                                 pe if cfg.use_pe else None, return_hidden=True, return_map=True)
     emb = _l2n(rot)
     if cfg.rot_cls:
@@ -137,10 +137,11 @@ def apply(
         extra["rot_cls_logits"] = jnp.einsum("bh,bhk->bk", h_rot, rc["w"][obj_idx]) + rc["b"][obj_idx]
     if cfg.view_head:
         v, V = params["view_head"], cfg.view_head
-        if cfg.view_from == "map":  # each cell of the head's map to its patch of the view
-            b_, m = map_rot.shape[0], map_rot.shape[1]
+        if cfg.view_from in ("map", "block"):  # each cell of the map to its patch of the view
+            src = map_rot if cfg.view_from == "map" else block
+            b_, m = src.shape[0], src.shape[1]
             q = V // m
-            y = dense(map_rot, v["w"], v["b"]).reshape(b_, m, m, q, q, 3)
+            y = dense(src, v["w"], v["b"]).reshape(b_, m, m, q, q, 3)
             extra["view"] = jnp.transpose(y, (0, 1, 3, 2, 4, 5)).reshape(b_, V, V, 3)
         else:
             extra["view"] = dense(h_rot, v["w"], v["b"]).reshape(h_rot.shape[0], V, V, 3)

@@ -24,12 +24,17 @@ from ._layers import conv_output_size, dense, group_norm, init_dense, init_gn, n
 DILATIONS = (2, 3, 4, 5, 6, 7)
 
 
-def head_map_size(cfg: ModelConfig) -> int:
-    """Side of the map each head flattens (the last stride-2 conv's output)."""
+def block_map_size(cfg: ModelConfig) -> int:
+    """Side of the dilated block's map (the features at S/4 after ``pose_downsample`` stride-2 convs)."""
     s = cfg.mask_size
-    for _ in range(cfg.pose_downsample + 1):
+    for _ in range(cfg.pose_downsample):
         s = conv_output_size(s, 3, 2, 1)
     return s
+
+
+def head_map_size(cfg: ModelConfig) -> int:
+    """Side of the map each head flattens (its stride-2 conv's output of the block's map)."""
+    return conv_output_size(block_map_size(cfg), 3, 2, 1)
 
 
 def _flat_size(cfg: ModelConfig) -> int:
@@ -139,6 +144,7 @@ def pose_decoder(
         branches.append(conv_gn_relu(x, p, cfg, dilation=d))
     branches.append(jnp.broadcast_to(jnp.mean(x, axis=(1, 2), keepdims=True), x.shape))
     x = jnp.concatenate(branches, axis=-1)
+    block = x
     outs, hidden, maps = [], [], []
     for name in ("rot", "xy", "z"):
         p = params[name]
@@ -156,7 +162,7 @@ def pose_decoder(
         hidden.append(h)
         outs.append(dense(h, p["out"]["w"], p["out"]["b"]))
     if return_hidden and return_map:
-        return outs[0], outs[1], outs[2], hidden[0], maps[0]
+        return outs[0], outs[1], outs[2], hidden[0], maps[0], block
     if return_hidden:
         return outs[0], outs[1], outs[2], hidden[0]
     return outs[0], outs[1], outs[2]
