@@ -473,6 +473,13 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # the crops more than 90 degrees off). On obj 1 (6,000 steps) the object coordinates change
         # nothing (test AR 0.657 vs 0.646, fused 0.665 vs 0.676) and PnP from them is far worse than
         # the network (experiments/pnp_probe.py: 39.6 vs 10.9 degrees).
+        # A clean-view reconstruction from the rotation head's map over the worst 3 % of pixels
+        # (model.view_head=32, model.view_from=map, loss.w_view=20, loss.view_top=0.03; the Augmented
+        # Autoencoder's target, no symmetry labels) half breaks the dumbbell's ring: 3,000 steps,
+        # validation AR 0.552 vs 0.448, 44 vs 87 degrees, and kept when it stops halfway
+        # (loss.view_until=0.5: 0.546). On obj 1 (6,000 steps) it costs: throughout, test 0.593 vs
+        # 0.646, fused 0.648 vs 0.676; the first half only, 0.622 vs 0.646, fused 0.673 vs 0.676
+        # (README "A reconstruction of the clean view"). Not in the preset until it wins on many objects.
         # A depth prior from the matched rotation (model.z_rot, obj 1, 6,000 steps): trained jointly
         # with 5-degree noise 0.581 / 11.5 deg / depth 3.81 % against 0.605 / 11.6 / 3.28 %; fitted
         # alone and added to a finished run, the same (README "Depth from the rotation"). A wider
