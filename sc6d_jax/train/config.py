@@ -479,7 +479,8 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # validation AR 0.552 vs 0.448, 44 vs 87 degrees, and kept when it stops halfway
         # (loss.view_until=0.5: 0.546). On obj 1 (6,000 steps) it costs: throughout, test 0.593 vs
         # 0.646, fused 0.648 vs 0.676; the first half only, 0.622 vs 0.646, fused 0.673 vs 0.676
-        # (README "A reconstruction of the clean view"). Not in the preset until it wins on many objects.
+        # (README "A reconstruction of the clean view"). On the four nearly symmetric objects together
+        # (8,000 steps, first half) it loses: validation 0.391 vs 0.444, the dumbbell's ring unbroken.
         # A depth prior from the matched rotation (model.z_rot, obj 1, 6,000 steps): trained jointly
         # with 5-degree noise 0.581 / 11.5 deg / depth 3.81 % against 0.605 / 11.6 / 3.28 %; fitted
         # alone and added to a finished run, the same (README "Depth from the rotation"). A wider
