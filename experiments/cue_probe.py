@@ -97,7 +97,7 @@ def representations(params, mcfg, rgb: np.ndarray, pe: np.ndarray, obj_idx: np.n
         feat, mask_logit = decoder(p["decoder"], mcfg, backbone(p["backbone"], mcfg, x), o)
         if mcfg.mask_gate:
             feat = feat * jax.nn.sigmoid(mask_logit)[..., None]
-        rot, _, _, h, m = pose_decoder(p["pose_decoder"], mcfg, feat, mask_logit, pe if mcfg.use_pe else None,
+        rot, _, _, h, m, _ = pose_decoder(p["pose_decoder"], mcfg, feat, mask_logit, pe if mcfg.use_pe else None,
                                        return_hidden=True, return_map=True)
         return {"features": feat, "rot_map": m, "rot_hidden": h, "rot_emb": _l2n(rot)}
 

@@ -47,6 +47,28 @@ def _batch(cfg: ModelConfig, b: int = 4, seed: int = 0) -> dict:
     }
 
 
+def _apply_seeing_the_pose_decoder(p, mcfg, batch):
+    """(apply's outputs, the pose decoder's own outputs in that call) for a check by hand."""
+    from sc6d_jax.model import apply
+    from sc6d_jax.model._pose_decoder import pose_decoder
+
+    import sc6d_jax.model._network as net
+
+    inner = {}
+
+    def spy(*args, **kw):
+        inner["res"] = pose_decoder(*args, **kw)
+        return inner["res"]
+
+    orig = net.pose_decoder
+    net.pose_decoder = spy
+    try:
+        out = apply(p, mcfg, batch["rgb"], batch["pe"], batch["obj_idx"])
+    finally:
+        net.pose_decoder = orig
+    return out, inner["res"]
+
+
 def test_info_nce_hand_computed():
     logits = jnp.asarray([[2.0, 1.0, 0.0], [0.0, 3.0, -1.0]])
     expected = (np.log(np.exp(2) + np.exp(1) + 1) - 2 + np.log(1 + np.exp(3) + np.exp(-1)) - 0) / 2
@@ -459,7 +481,6 @@ def test_rotation_grid_classifier_reads_the_rotation_head_and_its_loss():
     as without it); loss.w_rot_cls is the cross-entropy against the grid rotation nearest to the
     allocentric ground truth, found here by hand."""
     from sc6d_jax.model import apply, rot_cls_grid
-    from sc6d_jax.model._pose_decoder import pose_decoder
 
     G = rot_cls_grid(64)
     assert 48 <= len(G) <= 80 and np.array_equal(G, rot_cls_grid(64))
@@ -476,23 +497,8 @@ def test_rotation_grid_classifier_reads_the_rotation_head_and_its_loss():
     batch = _batch(mcfg)
     out = jax.jit(apply, static_argnums=1)(p, mcfg, batch["rgb"], batch["pe"], batch["obj_idx"])
     assert out["rot_cls_logits"].shape == (batch["rgb"].shape[0], len(G))
-    # the hidden layer the classifier reads, recomputed through the pose decoder alone
-    inner = {}
-
-    def spy(*args, **kw):
-        res = pose_decoder(*args, **kw)
-        inner["h"] = res[3]
-        return res
-
-    import sc6d_jax.model._network as net
-
-    orig = net.pose_decoder
-    net.pose_decoder = spy
-    try:
-        apply(p, mcfg, batch["rgb"], batch["pe"], batch["obj_idx"])
-    finally:
-        net.pose_decoder = orig
-    h = np.asarray(inner["h"])
+    # the hidden layer the classifier reads, as the pose decoder gave it
+    h = np.asarray(_apply_seeing_the_pose_decoder(p, mcfg, batch)[1][3])
     w, b = np.asarray(p["rot_cls"]["w"]), np.asarray(p["rot_cls"]["b"])
     logits = np.stack([h[i] @ w[o] + b[o] for i, o in enumerate(batch["obj_idx"])])
     np.testing.assert_allclose(np.asarray(out["rot_cls_logits"]), logits, rtol=1e-4, atol=1e-4)
@@ -522,8 +528,7 @@ def test_view_head_decodes_the_clean_view_from_the_rotation_head_and_its_bootstr
     """model.view_head=V adds a linear decoder of the rotation head's hidden layer to a (V,V,3)
     view (the other parameters are drawn as without it); loss.w_view is the mean over crops of
     the mean of each crop's largest per-pixel squared errors against view / 255, found by hand."""
-    from sc6d_jax.model import apply, view_loss
-    from sc6d_jax.model._pose_decoder import pose_decoder
+    from sc6d_jax.model import view_loss
 
     V = 8
     mcfg = dataclasses.replace(CFG, view_head=V)
@@ -536,22 +541,8 @@ def test_view_head_decodes_the_clean_view_from_the_rotation_head_and_its_bootstr
                                         p["view_head"])}
     batch = _batch(mcfg)
     batch["view"] = rng.integers(0, 256, (4, V, V, 3), dtype=np.uint8)
-    inner = {}
-
-    def spy(*args, **kw):
-        res = pose_decoder(*args, **kw)
-        inner["h"] = res[3]
-        return res
-
-    import sc6d_jax.model._network as net
-
-    orig = net.pose_decoder
-    net.pose_decoder = spy
-    try:
-        out = apply(p, mcfg, batch["rgb"], batch["pe"], batch["obj_idx"])
-    finally:
-        net.pose_decoder = orig
-    h = np.asarray(inner["h"], np.float64)
+    out, res = _apply_seeing_the_pose_decoder(p, mcfg, batch)
+    h = np.asarray(res[3], np.float64)
     want_view = (h @ np.asarray(p["view_head"]["w"], np.float64) + np.asarray(p["view_head"]["b"])).reshape(4, V, V, 3)
     np.testing.assert_allclose(np.asarray(out["view"]), want_view, rtol=1e-4, atol=1e-4)
     err = ((want_view - batch["view"] / 255.0) ** 2).sum(-1).reshape(4, -1)
@@ -583,8 +574,7 @@ def test_view_head_from_a_map_decodes_each_cell_to_its_patch(source):
     """model.view_from="map" ("block"): each cell of the m x m map the rotation head flattens (of
     the dilated block's output that the three heads read) is decoded linearly to its (V/m)^2
     patch of the view, found here by hand through the pose decoder."""
-    from sc6d_jax.model import apply
-    from sc6d_jax.model._pose_decoder import block_map_size, head_map_size, pose_decoder
+    from sc6d_jax.model._pose_decoder import block_map_size, head_map_size
 
     base = dataclasses.replace(CFG, pose_downsample=1)  # the heads read a 2 x 2 map, the block is 4 x 4
     assert (head_map_size(base), block_map_size(base)) == (2, 4)
@@ -596,22 +586,8 @@ def test_view_head_from_a_map_decodes_each_cell_to_its_patch(source):
     rng = np.random.default_rng(4)
     p = {**p, "view_head": jax.tree.map(lambda a: jnp.asarray(rng.normal(size=a.shape).astype(np.float32)), p["view_head"])}
     batch = _batch(mcfg)
-    inner = {}
-
-    def spy(*args, **kw):
-        res = pose_decoder(*args, **kw)
-        inner["map"] = res[4] if source == "map" else res[5]
-        return res
-
-    import sc6d_jax.model._network as net
-
-    orig = net.pose_decoder
-    net.pose_decoder = spy
-    try:
-        out = apply(p, mcfg, batch["rgb"], batch["pe"], batch["obj_idx"])
-    finally:
-        net.pose_decoder = orig
-    hm = np.asarray(inner["map"], np.float64)
+    out, res = _apply_seeing_the_pose_decoder(p, mcfg, batch)
+    hm = np.asarray(res[4] if source == "map" else res[5], np.float64)
     assert hm.shape == (4, m, m, c)
     w, b = np.asarray(p["view_head"]["w"], np.float64), np.asarray(p["view_head"]["b"], np.float64)
     for i, j in ((0, 0), (m - 1, 0), (m - 1, m - 1)):
