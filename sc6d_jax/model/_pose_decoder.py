@@ -131,8 +131,10 @@ def pose_decoder(
     return_hidden: bool = False, return_map: bool = False,
 ) -> tuple[jax.Array, ...]:
     """Returns (raw rotation feature (B,emb_dim), delta_xy (B,2), z logits (B,n_z_bins)), and with
-    ``return_hidden`` also the rotation head's hidden layer (B,head_hidden), with ``return_map``
-    then also the map the rotation head flattens (B,m,m,pose_width), m = :func:`head_map_size`.
+    ``return_hidden`` also the rotation head's hidden layer (B,head_hidden); with ``return_map``
+    that layer, the map the rotation head flattens (B,m,m,pose_width), m = :func:`head_map_size`,
+    and the dilated block's output that the three heads read (B,n,n,8 pose_width), n =
+    :func:`block_map_size` (six outputs).
     ``pe`` (B,S,S,2): the crops' PE maps, needed with ``cfg.z_ray_input``."""
     if (cfg.z_ray_input or cfg.z_scale_input) and pe is None:
         raise ValueError("z_ray_input and z_scale_input need the PE map (use_pe=True)")
@@ -161,7 +163,7 @@ def pose_decoder(
         h = jax.nn.relu(group_norm(h, p["fc_gn"]["scale"], p["fc_gn"]["bias"], num_groups(h.shape[-1], cfg.gn_groups)))
         hidden.append(h)
         outs.append(dense(h, p["out"]["w"], p["out"]["b"]))
-    if return_hidden and return_map:
+    if return_map:
         return outs[0], outs[1], outs[2], hidden[0], maps[0], block
     if return_hidden:
         return outs[0], outs[1], outs[2], hidden[0]
