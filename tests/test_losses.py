@@ -597,3 +597,29 @@ def test_view_head_from_a_map_decodes_each_cell_to_its_patch(source):
         init(jax.random.key(0), dataclasses.replace(base, view_head=2 if source == "block" else 1, view_from=source))
     with pytest.raises(ValueError, match="view_from"):
         dataclasses.replace(CFG, view_from="pooled")
+
+
+def test_view_head_per_object_decodes_each_crop_with_its_objects_decoder():
+    """model.view_per_object: one view decoder per object, stacked; each crop's cells are decoded
+    by its own object's decoder (found here by hand), the other parameters drawn as without it."""
+    base = dataclasses.replace(CFG, pose_downsample=1, view_head=8, view_from="map")
+    mcfg = dataclasses.replace(base, view_per_object=True)
+    p, p1 = init(jax.random.key(0), mcfg), init(jax.random.key(0), base)
+    m, c, q = 2, CFG.pose_width, 4
+    assert p["view_head"]["w"].shape == (CFG.n_objects, c, 3 * q * q) and p["view_head"]["b"].shape == (CFG.n_objects, 3 * q * q)
+    for a, b in zip(jax.tree.leaves({k: v for k, v in p.items() if k != "view_head"}),
+                    jax.tree.leaves({k: v for k, v in p1.items() if k != "view_head"})):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    rng = np.random.default_rng(5)
+    p = {**p, "view_head": jax.tree.map(lambda a: jnp.asarray(rng.normal(size=a.shape).astype(np.float32)), p["view_head"])}
+    batch = _batch(mcfg)
+    out, res = _apply_seeing_the_pose_decoder(p, mcfg, batch)
+    hm = np.asarray(res[4], np.float64)
+    w, b = np.asarray(p["view_head"]["w"], np.float64), np.asarray(p["view_head"]["b"], np.float64)
+    assert len(set(batch["obj_idx"].tolist())) == CFG.n_objects
+    for k, o in enumerate(batch["obj_idx"]):
+        for i, j in ((0, 0), (m - 1, 0), (m - 1, m - 1)):
+            patch = (hm[k, i, j] @ w[o] + b[o]).reshape(q, q, 3)
+            np.testing.assert_allclose(np.asarray(out["view"])[k, q * i:q * i + q, q * j:q * j + q], patch, rtol=1e-4, atol=1e-4)
+    with pytest.raises(ValueError, match="view_per_object"):
+        dataclasses.replace(CFG, view_per_object=True)

@@ -103,6 +103,9 @@ class ModelConfig:
       cell linearly to its (V/m)^2 patch of the view: local, as a decoder of the spatial layout
       the head reads; V must be a multiple of m) or "block" (the same from the dilated block's
       output, 8 pose_width channels at S/8 in the cpu preset, that all three heads read).
+    - view_per_object: one view decoder per object (stacked, chosen by the crop's object) instead
+      of one shared by all: with several objects, the shared linear decoder makes them share
+      what each cell of the decoded map means.
     - pose_downsample: stride-2 convs of the pose decoder before its dilated block (2, paper:
       the block runs at S/16 and the heads see S/32). 1 runs the block at S/8, the heads at
       S/16 (the second conv keeps its weights, with stride 1): for a 64-px crop the heads read
@@ -147,6 +150,7 @@ class ModelConfig:
     rot_cls: int = 0
     view_head: int = 0
     view_from: str = "hidden"
+    view_per_object: bool = False
     z_rot: bool = False
     pe_turns: bool = False
     z_ray_input: bool = False
@@ -185,6 +189,8 @@ class ModelConfig:
                              f"got {self.view_head!r}")
         if self.view_from not in ("hidden", "map", "block"):
             raise ValueError(f"view_from must be 'hidden', 'map' or 'block', got {self.view_from!r}")
+        if self.view_per_object and not self.view_head:
+            raise ValueError("view_per_object chooses the view decoder per object: it needs view_head > 0")
         if self.dense_xyz and not self.dense_head:
             raise ValueError("dense_xyz adds channels to the dense head: it needs dense_head=True")
 

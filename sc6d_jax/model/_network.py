@@ -51,9 +51,13 @@ def init(key: jax.Array, cfg: ModelConfig) -> dict:
             m, c = (head_map_size(cfg), cfg.pose_width) if cfg.view_from == "map" else (block_map_size(cfg), 8 * cfg.pose_width)
             if cfg.view_head % m:
                 raise ValueError(f"view_from={cfg.view_from!r}: view_head {cfg.view_head} must be a multiple of the map's side {m}")
-            params["view_head"] = init_dense(split(rng, 1)[0], c, 3 * (cfg.view_head // m) ** 2, scale=0.01)
+            out = 3 * (cfg.view_head // m) ** 2
         else:
-            params["view_head"] = init_dense(split(rng, 1)[0], cfg.head_hidden, 3 * cfg.view_head**2, scale=0.01)
+            c, out = cfg.head_hidden, 3 * cfg.view_head**2
+        if cfg.view_per_object:  # one decoder per object: the objects do not share the code of the map's cells
+            params["view_head"] = _init_stacked_dense(split(rng, 1)[0], cfg.n_objects, c, out, scale=0.01)
+        else:
+            params["view_head"] = init_dense(split(rng, 1)[0], c, out, scale=0.01)
     return jax.tree.map(jnp.asarray, params)
 
 
@@ -137,6 +141,8 @@ def apply(
         extra["rot_cls_logits"] = jnp.einsum("bh,bhk->bk", h_rot, rc["w"][obj_idx]) + rc["b"][obj_idx]
     if cfg.view_head:
         v, V = params["view_head"], cfg.view_head
+        if cfg.view_per_object:
+            v = {"w": v["w"][obj_idx], "b": v["b"][obj_idx]}
         if cfg.view_from in ("map", "block"):  # each cell of the map to its patch of the view
             src = map_rot if cfg.view_from == "map" else block
             b_, m = src.shape[0], src.shape[1]
