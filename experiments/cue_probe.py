@@ -98,7 +98,7 @@ def representations(params, mcfg, rgb: np.ndarray, pe: np.ndarray, obj_idx: np.n
         if mcfg.mask_gate:
             feat = feat * jax.nn.sigmoid(mask_logit)[..., None]
         rot, _, _, h, m, _ = pose_decoder(p["pose_decoder"], mcfg, feat, mask_logit, pe if mcfg.use_pe else None,
-                                       return_hidden=True, return_map=True)
+                                       return_hidden=True, return_map=True, obj_idx=o)
         return {"features": feat, "rot_map": m, "rot_hidden": h, "rot_emb": _l2n(rot)}
 
     parts = [fwd(params, jnp.asarray(rgb[s:s + 64]), jnp.asarray(pe[s:s + 64]), jnp.asarray(obj_idx[s:s + 64]))

@@ -68,10 +68,9 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
 
     def body() -> int:
-        import cv2
         import jax.numpy as jnp
 
-        from sc6d_jax._io import atomic_write_bytes
+        from sc6d_jax._io import atomic_write_png
         from sc6d_jax.model import apply, view_loss
 
         if a.crops < 1:
@@ -87,11 +86,7 @@ def main(argv: list[str] | None = None) -> int:
                     jnp.asarray(b["obj_idx"]))
         loss = float(view_loss(out["view"], b["view"], cfg.loss.view_top))
         img = draw(b["rgb"], b["view"], np.asarray(out["view"], np.float32))
-        ok, buf = cv2.imencode(".png", cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-        if not ok:
-            raise RuntimeError("could not encode the PNG")
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(a.out, buf.tobytes())
+        atomic_write_png(a.out, img)
         print(f"step {step}: view loss {loss:.4f} over {a.crops} crops (top {cfg.loss.view_top:g} of the pixels); "
               f"wrote {a.out}")
         return 0

@@ -39,6 +39,27 @@ def atomic_write_json(path: str | os.PathLike, obj: Any, indent: int | None = 2)
     return atomic_write_text(path, json.dumps(obj, indent=indent, sort_keys=False) + "\n")
 
 
+def png_bytes(img: Any, rgb: bool = True) -> bytes:
+    """PNG bytes of an image: (H,W,3) uint8 in RGB order (BGR with ``rgb=False``), or (H,W) uint8
+    or uint16. Raises ValueError naming the shape and dtype when it cannot be encoded."""
+    import cv2
+    import numpy as np
+
+    a = np.asarray(img)
+    if a.ndim == 3 and a.shape[-1] == 3 and rgb:
+        a = a[..., ::-1]
+    good = a.size > 0 and a.dtype in (np.uint8, np.uint16) and (a.ndim == 2 or (a.ndim == 3 and a.shape[-1] == 3))
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(a)) if good else (False, None)
+    if not ok:
+        raise ValueError(f"cannot encode an image of shape {a.shape} and dtype {a.dtype} as PNG")
+    return buf.tobytes()
+
+
+def atomic_write_png(path: str | os.PathLike, img: Any, rgb: bool = True) -> Path:
+    """Write ``img`` (see :func:`png_bytes`) as a PNG file, atomically."""
+    return atomic_write_bytes(path, png_bytes(img, rgb))
+
+
 @contextlib.contextmanager
 def atomic_directory(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
     """Yield a temporary directory that is renamed to ``path`` when the block succeeds.

@@ -117,7 +117,7 @@ def run_checks(n_poses: int = 6, seed: int = 0, out_png: Path | None = None) -> 
                 row = np.concatenate([thumb, cut_rgb, direct.rgb, side_view.rgb], axis=1)
                 tiles.append(row)
     if out_png is not None and tiles:
-        from sc6d_jax._io import atomic_write_bytes
+        from sc6d_jax._io import atomic_write_png
 
         sheet = np.concatenate(tiles, axis=0)
         header = np.full((22, sheet.shape[1], 3), 255, np.uint8)
@@ -126,8 +126,7 @@ def run_checks(n_poses: int = 6, seed: int = 0, out_png: Path | None = None) -> 
             cv2.putText(header, label, (x, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (0, 0, 0), 1, cv2.LINE_AA)
             x += w
         sheet = np.concatenate([header, sheet], axis=0)
-        ok, buf = cv2.imencode(".png", sheet[..., ::-1])
-        atomic_write_bytes(out_png, buf.tobytes())
+        atomic_write_png(out_png, sheet)
     return rows
 
 

@@ -231,9 +231,7 @@ def overlay_figures(
 ) -> list[Path]:
     """Side-by-side PNGs ``poses_SCENE_IM.png`` (image | estimated poses as silhouette contours,
     ``sc6d_jax.inference.cli.draw_overlay``) for the first ``n_images`` images of the results."""
-    import cv2
-
-    from sc6d_jax._io import atomic_write_bytes
+    from sc6d_jax._io import atomic_write_png
     from sc6d_jax.bop import BopDataset, bbox_extent, read_results_csv
     from sc6d_jax.inference._estimator import PosePrediction
     from sc6d_jax.inference.cli import draw_overlay
@@ -256,11 +254,7 @@ def overlay_figures(
             preds.append(PosePrediction(obj_id=e.obj_id, box=box, R=e.R, t=e.t, score=e.score, prob=0.0,
                                         R_topk=e.R[None], prob_topk=np.zeros(1), score_topk=np.zeros(1)))
         pic = np.concatenate([img, draw_overlay(img, K, preds, str(ds.models_dir))], axis=1)
-        ok, buf = cv2.imencode(".png", np.ascontiguousarray(pic[..., ::-1]))
-        if not ok:
-            raise ValueError(f"cannot encode the overlay of scene {scene_id} image {im_id}")
-        p = out_dir / f"poses_{scene_id:06d}_{im_id:06d}.png"
-        atomic_write_bytes(p, buf.tobytes())
+        p = atomic_write_png(out_dir / f"poses_{scene_id:06d}_{im_id:06d}.png", pic)
         written.append(p)
     return written
 

@@ -623,3 +623,44 @@ def test_view_head_per_object_decodes_each_crop_with_its_objects_decoder():
             np.testing.assert_allclose(np.asarray(out["view"])[k, q * i:q * i + q, q * j:q * j + q], patch, rtol=1e-4, atol=1e-4)
     with pytest.raises(ValueError, match="view_per_object"):
         dataclasses.replace(CFG, view_per_object=True)
+
+
+def test_per_object_heads_read_each_crops_output_layers_off_the_shared_hidden_layers():
+    """model.per_object_heads: the rotation, centre and depth heads' output layers are stacked per
+    object; each crop's embedding is its object's layer of the shared hidden layer (by hand), and
+    with every object's layers set to one shared model's, the outputs are that model's."""
+    from sc6d_jax.model import apply
+
+    base = dataclasses.replace(CFG, pose_downsample=1)
+    mcfg = dataclasses.replace(base, per_object_heads=True)
+    p, p1 = init(jax.random.key(0), mcfg), init(jax.random.key(0), base)
+    hh = CFG.head_hidden
+    for name, d in (("rot", CFG.emb_dim), ("xy", 2), ("z", CFG.n_z_bins)):
+        assert p["pose_decoder"][name]["out"]["w"].shape == (CFG.n_objects, hh, d)
+        assert p["pose_decoder"][name]["out"]["b"].shape == (CFG.n_objects, d)
+    strip = lambda q: {**q, "pose_decoder": {k: ({kk: vv for kk, vv in v.items() if kk != "out"} if k in ("rot", "xy", "z") else v)
+                                             for k, v in q["pose_decoder"].items()}}
+    for a, b in zip(jax.tree.leaves(strip(p)), jax.tree.leaves(strip(p1))):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    rng = np.random.default_rng(6)
+    pd = {k: v for k, v in p["pose_decoder"].items()}
+    for name in ("rot", "xy", "z"):
+        pd[name] = {**pd[name], "out": jax.tree.map(lambda a: jnp.asarray(rng.normal(size=a.shape).astype(np.float32)),
+                                                    pd[name]["out"])}
+    p = {**p, "pose_decoder": pd}
+    batch = _batch(mcfg)
+    out, res = _apply_seeing_the_pose_decoder(p, mcfg, batch)
+    h = np.asarray(res[3], np.float64)
+    w, b = np.asarray(pd["rot"]["out"]["w"], np.float64), np.asarray(pd["rot"]["out"]["b"], np.float64)
+    e = np.stack([h[k] @ w[o] + b[o] for k, o in enumerate(batch["obj_idx"])])
+    np.testing.assert_allclose(np.asarray(out["rot_emb"]), e / np.linalg.norm(e, axis=1, keepdims=True), rtol=1e-4, atol=1e-5)
+    # every object's output layers = the shared model's: the shared model's outputs
+    same = {**p1, "pose_decoder": {**p1["pose_decoder"], **{
+        n: {**p1["pose_decoder"][n], "out": jax.tree.map(lambda a: jnp.stack([a] * CFG.n_objects), p1["pose_decoder"][n]["out"])}
+        for n in ("rot", "xy", "z")}}}
+    o1, o2 = apply(same, mcfg, batch["rgb"], batch["pe"], batch["obj_idx"]), apply(p1, base, batch["rgb"], batch["pe"], batch["obj_idx"])
+    for k in ("rot_emb", "delta_xy", "z_logits"):
+        np.testing.assert_allclose(np.asarray(o1[k]), np.asarray(o2[k]), rtol=1e-5, atol=1e-6)
+    from sc6d_jax.model._pose_decoder import pose_decoder
+    with pytest.raises(ValueError, match="obj_idx"):
+        pose_decoder(p["pose_decoder"], mcfg, jnp.zeros((1, 8, 8, CFG.feat_dim)), jnp.zeros((1, 8, 8)), batch["pe"][:1])

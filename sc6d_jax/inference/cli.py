@@ -261,7 +261,7 @@ def draw_overlay(image: np.ndarray, K: np.ndarray, preds, models_dir: str | None
 def predict_image(est, args) -> int:
     import cv2
 
-    from sc6d_jax._io import atomic_write_bytes
+    from sc6d_jax._io import atomic_write_png
 
     if not args.image.is_file():
         raise FileNotFoundError(f"image {args.image} does not exist")
@@ -282,9 +282,6 @@ def predict_image(est, args) -> int:
     ]
     print(json.dumps({"image": str(args.image), "poses": rows}, indent=1))
     overlay = args.overlay or Path(f"{args.image.stem}_poses.png")
-    ok, png = cv2.imencode(".png", cv2.cvtColor(draw_overlay(image, K, preds, est.models_dir), cv2.COLOR_RGB2BGR))
-    if not ok:
-        raise ValueError(f"cannot encode the overlay PNG {overlay}")
-    atomic_write_bytes(overlay, png.tobytes())
+    atomic_write_png(overlay, draw_overlay(image, K, preds, est.models_dir))
     print(f"sc6d predict: overlay -> {overlay}", file=sys.stderr)
     return 0

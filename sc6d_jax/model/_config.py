@@ -106,6 +106,10 @@ class ModelConfig:
     - view_per_object: one view decoder per object (stacked, chosen by the crop's object) instead
       of one shared by all: with several objects, the shared linear decoder makes them share
       what each cell of the decoded map means.
+    - per_object_heads: the output layers of the pose decoder's three heads (rotation embedding,
+      delta_xy, z logits) one per object, chosen by the crop's object, as the SO(3) encoder's
+      output layer is (paper: shared). The rest of the pose decoder stays shared: each object
+      reads its own embedding and depth code off the shared hidden layers.
     - pose_downsample: stride-2 convs of the pose decoder before its dilated block (2, paper:
       the block runs at S/16 and the heads see S/32). 1 runs the block at S/8, the heads at
       S/16 (the second conv keeps its weights, with stride 1): for a 64-px crop the heads read
@@ -151,6 +155,7 @@ class ModelConfig:
     view_head: int = 0
     view_from: str = "hidden"
     view_per_object: bool = False
+    per_object_heads: bool = False
     z_rot: bool = False
     pe_turns: bool = False
     z_ray_input: bool = False

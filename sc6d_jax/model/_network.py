@@ -134,7 +134,8 @@ def apply(
             gate = jnp.where(jnp.asarray(on)[:, None, None], jnp.asarray(mask, gate.dtype), gate)
         feat = feat * gate[..., None]
     rot, dxy, zl, h_rot, map_rot, block = pose_decoder(params["pose_decoder"], cfg, feat, mask_logit,
-                                                pe if cfg.use_pe else None, return_hidden=True, return_map=True)
+                                                pe if cfg.use_pe else None, return_hidden=True, return_map=True,
+                                                obj_idx=obj_idx)
     emb = _l2n(rot)
     if cfg.rot_cls:
         rc = params["rot_cls"]

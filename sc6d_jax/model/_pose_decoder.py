@@ -56,7 +56,8 @@ def init_pose_decoder(key: np.random.Generator, cfg: ModelConfig) -> dict:
             "conv": init_conv_gn(k1, 3, 8 * pw, pw),
             "fc": init_dense(k2, flat, hh),
             "fc_gn": init_gn(hh),
-            "out": init_dense(k3, hh, out_dim, scale=0.01),
+            "out": (_stacked_dense(k3, cfg.n_objects, hh, out_dim) if cfg.per_object_heads
+                    else init_dense(k3, hh, out_dim, scale=0.01)),
         }
     if cfg.z_size_input:
         params["z"]["size"] = init_dense(split(k[-1], 4)[3], N_SIZE_FEATURES, hh)
@@ -65,6 +66,12 @@ def init_pose_decoder(key: np.random.Generator, cfg: ModelConfig) -> dict:
     if cfg.z_scale_input:
         params["z"]["scale"] = init_dense(split(k[-1], 6)[5], N_SCALE_FEATURES, hh)
     return params
+
+
+def _stacked_dense(key: np.random.Generator, n: int, cin: int, cout: int) -> dict:
+    """n output layers of one head (per_object_heads), each drawn as the shared one would be."""
+    ps = [init_dense(k, cin, cout, scale=0.01) for k in split(key, n)]
+    return {"w": np.stack([p["w"] for p in ps]), "b": np.stack([p["b"] for p in ps])}
 
 
 #: Features of the crop's ray fed to the depth head (z_ray_input).
@@ -128,16 +135,19 @@ def mask_size_features(mask_logit: jax.Array) -> jax.Array:
 
 def pose_decoder(
     params: dict, cfg: ModelConfig, feat: jax.Array, mask_logit: jax.Array, pe: jax.Array | None = None,
-    return_hidden: bool = False, return_map: bool = False,
+    return_hidden: bool = False, return_map: bool = False, obj_idx: jax.Array | None = None,
 ) -> tuple[jax.Array, ...]:
     """Returns (raw rotation feature (B,emb_dim), delta_xy (B,2), z logits (B,n_z_bins)), and with
     ``return_hidden`` also the rotation head's hidden layer (B,head_hidden); with ``return_map``
     that layer, the map the rotation head flattens (B,m,m,pose_width), m = :func:`head_map_size`,
     and the dilated block's output that the three heads read (B,n,n,8 pose_width), n =
     :func:`block_map_size` (six outputs).
-    ``pe`` (B,S,S,2): the crops' PE maps, needed with ``cfg.z_ray_input``."""
+    ``pe`` (B,S,S,2): the crops' PE maps, needed with ``cfg.z_ray_input``. ``obj_idx`` (B,): the
+    crops' objects, needed with ``cfg.per_object_heads`` (each head's output layer is its object's)."""
     if (cfg.z_ray_input or cfg.z_scale_input) and pe is None:
         raise ValueError("z_ray_input and z_scale_input need the PE map (use_pe=True)")
+    if cfg.per_object_heads and obj_idx is None:
+        raise ValueError("per_object_heads needs obj_idx (each crop's object chooses the heads' output layers)")
     x = jnp.concatenate([feat, jax.nn.sigmoid(mask_logit)[..., None]], axis=-1)
     x = conv_gn_relu(x, params["down1"], cfg, stride=2 if cfg.pose_downsample >= 1 else 1)
     x = conv_gn_relu(x, params["down2"], cfg, stride=2 if cfg.pose_downsample == 2 else 1)
@@ -162,7 +172,11 @@ def pose_decoder(
             h = h + dense(scale_features(pe), p["scale"]["w"], p["scale"]["b"])
         h = jax.nn.relu(group_norm(h, p["fc_gn"]["scale"], p["fc_gn"]["bias"], num_groups(h.shape[-1], cfg.gn_groups)))
         hidden.append(h)
-        outs.append(dense(h, p["out"]["w"], p["out"]["b"]))
+        w, b = p["out"]["w"], p["out"]["b"]
+        if cfg.per_object_heads:
+            obj = jnp.asarray(obj_idx, jnp.int32)
+            w, b = w[obj], b[obj]
+        outs.append(dense(h, w, b))
     if return_map:
         return outs[0], outs[1], outs[2], hidden[0], maps[0], block
     if return_hidden:

@@ -9,7 +9,6 @@ Layout written (BOP toolkit conventions)::
 
 from __future__ import annotations
 
-import json
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,7 +17,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from sc6d_jax._io import atomic_directory, atomic_write_json
+from sc6d_jax._io import atomic_directory, atomic_write_json, png_bytes
 from sc6d_jax.bop import Camera, GtInfo, GtPose, Target, load_models_info, model_path
 from sc6d_jax.bop import write_scene_camera, write_scene_gt, write_scene_gt_info, write_targets
 
@@ -53,13 +52,6 @@ def _background(rng: np.random.Generator, w: int, h: int) -> np.ndarray:
     side = max(w, h)
     big = random_background(rng, min(side, 512))
     return cv2.resize(big, (side, side), interpolation=cv2.INTER_LINEAR)[:h, :w].copy()
-
-
-def _png(img: np.ndarray) -> bytes:
-    ok, buf = cv2.imencode(".png", img)
-    if not ok:  # pragma: no cover
-        raise RuntimeError("PNG encoding failed")
-    return buf.tobytes()
 
 
 def _scene_camera(rng: np.random.Generator, w: int, h: int) -> np.ndarray:
@@ -130,17 +122,17 @@ def render_dataset(models_dir: str | Path, out_dir: str | Path, spec: DatasetSpe
                                     specular=rng.uniform(0, 0.3)) for _ in range(rng.integers(1, 4))]
                     r.set_lights(lights, headlight=(rng.uniform(0.15, 0.35), rng.uniform(0.1, 0.4)))
                     out = r.render(objs, K, primitives=prims, background=_background(rng, W, H), full_masks=True)
-                    (sdir / "rgb" / f"{im:06d}.png").write_bytes(_png(out.rgb[..., ::-1]))
+                    (sdir / "rgb" / f"{im:06d}.png").write_bytes(png_bytes(out.rgb))
                     depth = np.round(out.depth / DEPTH_SCALE)
-                    (sdir / "depth" / f"{im:06d}.png").write_bytes(_png(np.clip(depth, 0, 65535).astype(np.uint16)))
+                    (sdir / "depth" / f"{im:06d}.png").write_bytes(png_bytes(np.clip(depth, 0, 65535).astype(np.uint16)))
                     cams[im] = Camera(K, DEPTH_SCALE)
                     gts[im] = [GtPose(o, R, t) for o, R, t in objs]
                     infos_im = []
                     counts: dict[int, int] = {}
                     for g, (o, R, t) in enumerate(objs):
                         full, vis = out.mask_full[g], out.mask_visib[g]
-                        (sdir / "mask" / f"{im:06d}_{g:06d}.png").write_bytes(_png(full.astype(np.uint8) * 255))
-                        (sdir / "mask_visib" / f"{im:06d}_{g:06d}.png").write_bytes(_png(vis.astype(np.uint8) * 255))
+                        (sdir / "mask" / f"{im:06d}_{g:06d}.png").write_bytes(png_bytes(full.astype(np.uint8) * 255))
+                        (sdir / "mask_visib" / f"{im:06d}_{g:06d}.png").write_bytes(png_bytes(vis.astype(np.uint8) * 255))
                         infos_im.append(_gt_info(verts[o], K, R, t, full, vis))
                         if infos_im[-1].visib_fract >= MIN_TARGET_VISIB:
                             counts[o] = counts.get(o, 0) + 1
