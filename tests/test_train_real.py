@@ -308,3 +308,53 @@ def test_view_until_switches_the_view_loss_off_after_its_fraction_of_the_run(tmp
         assert r["loss_view"] > 0
     with pytest.raises(ValueError, match="view_until"):
         dataclasses.replace(cfg.loss, view_until=0.0)
+
+
+def test_init_from_starts_a_run_from_another_models_object_independent_parameters(tmp_path, models_dir, capsys):
+    """init_from=RUN (``--init-from``): a run on other objects starts from every parameter of RUN
+    whose shape does not depend on the number of objects; the arrays of RUN's objects (decoder
+    embedding, SO(3) encoder output layer) start as a fresh run's. Checked array by array against
+    the source's checkpoint; the source is named in config.json and in every checkpoint's
+    meta.json; a missing source or one of another width is refused before anything is written."""
+    import dataclasses
+
+    import jax
+
+    from sc6d_jax.checkpoint import load_checkpoint, read_meta
+    from sc6d_jax.model import init
+    from sc6d_jax.train.transfer import transfer_params
+
+    def tiny(obj_ids, steps, **kw):
+        cfg = preset("tiny", steps=steps, log_every=1, checkpoint_every=steps, val_crops=0, **kw)
+        return cfg.replace(stream=dataclasses.replace(cfg.stream, obj_ids=obj_ids),  # one shared decoder, as the cpu preset's
+                           model=dataclasses.replace(cfg.model, n_objects=len(obj_ids), per_object_decoder=False))
+
+    src = tmp_path / "src"
+    train(tiny((2, 3), 3), models_dir, src, progress=False, verbose=False, workers=0)
+    src_params, _ = load_checkpoint(src)
+    mcfg = tiny((ASYM_OBJ,), 2).model
+    fresh = init(jax.random.PRNGKey(5), mcfg)
+    moved = transfer_params(fresh, mcfg, str(src))
+    flat = lambda t: {jax.tree_util.keystr(p): np.asarray(x) for p, x in jax.tree_util.tree_leaves_with_path(t)}
+    s, f, m = flat(src_params), flat(fresh), flat(moved.params)
+    assert set(moved.per_object) == {"['decoder']['obj_embed']", "['rot_head']['out']['b']", "['rot_head']['out']['w']"}
+    assert moved.unmatched == () and set(moved.copied) | set(moved.per_object) == set(m)
+    for k in moved.copied:
+        np.testing.assert_array_equal(m[k], s[k])
+    for k in moved.per_object:
+        np.testing.assert_array_equal(m[k], f[k])
+    assert any(not np.array_equal(s[k], f[k]) for k in moved.copied)  # the source has trained: a real change
+
+    run = tmp_path / "obj1"
+    train(tiny((ASYM_OBJ,), 2, init_from=str(src)), models_dir, run, progress=False, verbose=True, workers=0)
+    assert "init_from: " in capsys.readouterr().out
+    assert json.loads((run / "config.json").read_text())["init_from"] == str(src)
+    assert read_meta(checkpoint_dirs(run)[-1][1])["init_from"] == moved.source
+
+    with pytest.raises(FileNotFoundError, match="nowhere"):
+        train(tiny((ASYM_OBJ,), 2, init_from=str(tmp_path / "nowhere")), models_dir, tmp_path / "r1",
+              progress=False, verbose=False, workers=0)
+    assert not (tmp_path / "r1").exists()
+    with pytest.raises(ValueError, match="no backbone array"):
+        transfer_params(init(jax.random.PRNGKey(0), dataclasses.replace(mcfg, width=8)),
+                        dataclasses.replace(mcfg, width=8), str(src))

@@ -175,6 +175,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "losses only), recorded in RUN_DIR/amendments.json")
     p.add_argument("--workers", type=int, default=None, help="renderer worker processes (does not change the data)")
     p.add_argument("--init-weights", type=Path, default=None, help="local ResNet weights file for the backbone")
+    p.add_argument("--init-from", default=None, metavar="RUN",
+                   help="start from a trained model (run directory or shipped name, e.g. builtin): every "
+                        "parameter not specific to its objects (the same as --set init_from=RUN)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--quiet", action="store_true", help="do not print the config")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -197,7 +200,7 @@ def build_config(args: argparse.Namespace) -> Any:
     else:
         cfg = preset(args.preset or "cpu")
     changes: dict = {}
-    for name in ("steps", "seed", "checkpoint_every", "log_every"):
+    for name in ("steps", "seed", "checkpoint_every", "log_every", "init_from"):
         if getattr(args, name) is not None:
             changes[name] = getattr(args, name)
     if args.batch_size is not None or args.obj_ids is not None:

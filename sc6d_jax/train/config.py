@@ -227,6 +227,11 @@ class TrainConfig:
             ``val_raw_*``). From a fresh start its decay ramps up as ``min(ema, (1 + n) / (10 +
             n))`` after n updates, so that the random initial parameters are soon forgotten;
             switched on at a resume, it is ``ema`` from the first update.
+        init_from: a trained model to start from (a run directory, a checkpoint directory or a
+            shipped model's name, e.g. ``builtin``): every parameter that does not belong to its
+            objects is taken from it, the new objects' own parameters start fresh
+            (``sc6d_jax.train.transfer``); the project's stand-in for the paper's ImageNet
+            start. ``None``: from scratch.
     """
 
     model: Any
@@ -242,6 +247,7 @@ class TrainConfig:
     log_every: int = 10
     val_crops: int = 256
     ema: float = 0.0
+    init_from: str | None = None
 
     @property
     def curriculum_steps(self) -> int:
@@ -266,6 +272,8 @@ class TrainConfig:
             raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
         if not isinstance(self.val_crops, int) or self.val_crops < 0:
             raise ValueError(f"val_crops must be a non-negative integer, got {self.val_crops!r}")
+        if self.init_from is not None and (not isinstance(self.init_from, str) or not self.init_from.strip()):
+            raise ValueError(f"init_from must be a run directory or a shipped model's name, got {self.init_from!r}")
         if isinstance(self.ema, bool) or not isinstance(self.ema, (int, float)) or not 0.0 <= self.ema < 1.0:
             raise ValueError(f"ema must be a decay in [0, 1) (0 = off), got {self.ema!r}")
         for name in ("checkpoint_every", "keep_checkpoints", "log_every"):

@@ -337,6 +337,10 @@ def train(
             f"run directory {run_dir} already holds checkpoints (newest: step {ckpts[-1][0]}); "
             "resume it (--resume) or choose another directory"
         )
+    if cfg.init_from is not None and not (resume and ckpts):
+        from sc6d_jax import pretrained
+
+        pretrained.check_run(cfg.init_from)  # FileNotFoundError naming it, before anything is written
     latest: Path | None = None
     start = 0
     if resume and ckpts:
@@ -405,7 +409,9 @@ def train(
         # init is called eagerly (the model may draw its parameters with numpy, which cannot be
         # traced); on resume its output is only the template of the checkpoint's structure.
         params = model_fns.init(init_key, cfg.model)
+        init_source = None  # the checkpoint init_from read (kept in every checkpoint's meta.json)
         if latest is not None:
+            init_source = read_meta(latest).get("init_from")
             p_t = jax.eval_shape(lambda p: p, params)
             o_t = jax.eval_shape(tx.init, p_t)
             params, opt_state, key_data, _ = read_checkpoint(latest, p_t, o_t)
@@ -416,6 +422,15 @@ def train(
         else:
             if init_weights is not None:
                 params = model_fns.load_weights(params, cfg.model, init_weights)
+            if cfg.init_from is not None:
+                from sc6d_jax.train.transfer import transfer_params
+
+                moved = transfer_params(params, cfg.model, cfg.init_from, model_fns.init)
+                params = moved.params
+                init_source = moved.source
+                if verbose and pidx == 0:
+                    sizes = {jax.tree_util.keystr(p): int(np.size(x)) for p, x in jax.tree_util.tree_leaves_with_path(params)}
+                    print(f"sc6d train: init_from: {moved.summary(sizes)}", flush=True)
             params = _host_tree(params)
             opt_state = _host_tree(tx.init(params))
             ema = None
@@ -439,6 +454,7 @@ def train(
         extra_meta = {
             "models_dir": str(models_dir),
             "init_weights": str(init_weights) if init_weights else None,
+            "init_from": init_source,
             "process_count": pcount,
             "device_count": ndev,
             "jax_version": jax.__version__,
