@@ -83,6 +83,10 @@ def test_cli_refuses_bad_input_with_one_error_line(tmp_path, capsys, models_dir)
     assert "unknown preset 'huge'" in capsys.readouterr().err
     assert main(["train", "--models", str(tmp_path / "missing"), "--out", str(tmp_path / "r")]) == 2
     assert "does not exist" in capsys.readouterr().err
+    assert main(["train", "--models", str(models_dir), "--out", str(tmp_path / "r"), "--preset", "tiny",
+                 "--init-from", str(tmp_path / "nosuchrun")]) == 2
+    err = capsys.readouterr().err
+    assert "nosuchrun" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "r").exists()
 
 

@@ -489,6 +489,14 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # 0.646, fused 0.648 vs 0.676; the first half only, 0.622 vs 0.646, fused 0.673 vs 0.676
         # (README "A reconstruction of the clean view"). On the four nearly symmetric objects together
         # (8,000 steps, first half) it loses: validation 0.391 vs 0.444, the dumbbell's ring unbroken.
+        # Per-object view decoders (model.view_per_object) with the view loss throughout, the same four
+        # objects: 0.373 vs 0.444, every one of them worse (dumbbell 82 deg, mug 57 vs 26). Per-object
+        # output layers of the three heads (model.per_object_heads), the same four objects: behind at
+        # every checkpoint, 0.373 vs 0.431 at step 6,000 (-0.058 +- 0.018; stopped there).
+        # Starting from a model of other objects (init_from; obj 1, 6,000 steps, sources that never saw
+        # it): +0.05-0.10 validation AR over the first 1,500 steps, nothing at the end (0.668 from a
+        # 4-object run, 0.638 from a 13-object one, against 0.648; fused test 0.700 / 0.697 against
+        # 0.676, within 1.5 spreads): the preset starts from scratch.
         # A depth prior from the matched rotation (model.z_rot, obj 1, 6,000 steps): trained jointly
         # with 5-degree noise 0.581 / 11.5 deg / depth 3.81 % against 0.605 / 11.6 / 3.28 %; fitted
         # alone and added to a finished run, the same (README "Depth from the rotation"). A wider
