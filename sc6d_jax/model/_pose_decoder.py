@@ -20,6 +20,7 @@ import numpy as np
 from ._config import ModelConfig
 from ._encoder import conv_gn_relu, init_conv_gn
 from ._layers import conv_output_size, dense, group_norm, init_dense, init_gn, num_groups, split
+from ._rotation import _init_stacked_dense
 
 DILATIONS = (2, 3, 4, 5, 6, 7)
 
@@ -56,7 +57,7 @@ def init_pose_decoder(key: np.random.Generator, cfg: ModelConfig) -> dict:
             "conv": init_conv_gn(k1, 3, 8 * pw, pw),
             "fc": init_dense(k2, flat, hh),
             "fc_gn": init_gn(hh),
-            "out": (_stacked_dense(k3, cfg.n_objects, hh, out_dim) if cfg.per_object_heads
+            "out": (_init_stacked_dense(k3, cfg.n_objects, hh, out_dim, scale=0.01) if cfg.per_object_heads
                     else init_dense(k3, hh, out_dim, scale=0.01)),
         }
     if cfg.z_size_input:
@@ -66,12 +67,6 @@ def init_pose_decoder(key: np.random.Generator, cfg: ModelConfig) -> dict:
     if cfg.z_scale_input:
         params["z"]["scale"] = init_dense(split(k[-1], 6)[5], N_SCALE_FEATURES, hh)
     return params
-
-
-def _stacked_dense(key: np.random.Generator, n: int, cin: int, cout: int) -> dict:
-    """n output layers of one head (per_object_heads), each drawn as the shared one would be."""
-    ps = [init_dense(k, cin, cout, scale=0.01) for k in split(key, n)]
-    return {"w": np.stack([p["w"] for p in ps]), "b": np.stack([p["b"] for p in ps])}
 
 
 #: Features of the crop's ray fed to the depth head (z_ray_input).
