@@ -496,7 +496,8 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # Starting from a model of other objects (init_from; obj 1, 6,000 steps, sources that never saw
         # it): +0.05-0.10 validation AR over the first 1,500 steps, nothing at the end (0.668 from a
         # 4-object run, 0.638 from a 13-object one, against 0.648; fused test 0.700 / 0.697 against
-        # 0.676, within 1.5 spreads): the preset starts from scratch.
+        # 0.676, within 1.5 spreads): the preset starts from scratch. On a 2,000-step schedule the start
+        # from the 4-object run keeps its lead (validation 0.536 vs 0.424, fused test 0.563 vs 0.484).
         # A depth prior from the matched rotation (model.z_rot, obj 1, 6,000 steps): trained jointly
         # with 5-degree noise 0.581 / 11.5 deg / depth 3.81 % against 0.605 / 11.6 / 3.28 %; fitted
         # alone and added to a finished run, the same (README "Depth from the rotation"). A wider
