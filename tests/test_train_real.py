@@ -339,9 +339,8 @@ def test_init_from_starts_a_run_from_another_models_object_independent_parameter
     mcfg = tiny((ASYM_OBJ,), 2).model
     fresh = init(jax.random.PRNGKey(5), mcfg)
     moved = transfer_params(fresh, mcfg, str(src))
-    flat = lambda t: {jax.tree_util.keystr(p): np.asarray(x) for p, x in jax.tree_util.tree_leaves_with_path(t)}
-    s, f, m = flat(src_params), flat(fresh), flat(moved.params)
-    assert set(moved.per_object) == {"['decoder']['obj_embed']", "['rot_head']['out']['b']", "['rot_head']['out']['w']"}
+    s, f, m = (flatten_with_paths(t, "params") for t in (src_params, fresh, moved.params))
+    assert set(moved.per_object) == {"params/decoder/obj_embed", "params/rot_head/out/b", "params/rot_head/out/w"}
     assert moved.unmatched == () and set(moved.copied) | set(moved.per_object) == set(m)
     for k in moved.copied:
         np.testing.assert_array_equal(m[k], s[k])

@@ -141,8 +141,10 @@ def pose_decoder(
     crops' objects, needed with ``cfg.per_object_heads`` (each head's output layer is its object's)."""
     if (cfg.z_ray_input or cfg.z_scale_input) and pe is None:
         raise ValueError("z_ray_input and z_scale_input need the PE map (use_pe=True)")
-    if cfg.per_object_heads and obj_idx is None:
-        raise ValueError("per_object_heads needs obj_idx (each crop's object chooses the heads' output layers)")
+    if cfg.per_object_heads:
+        if obj_idx is None:
+            raise ValueError("per_object_heads needs obj_idx (each crop's object chooses the heads' output layers)")
+        obj_idx = jnp.asarray(obj_idx, jnp.int32)
     x = jnp.concatenate([feat, jax.nn.sigmoid(mask_logit)[..., None]], axis=-1)
     x = conv_gn_relu(x, params["down1"], cfg, stride=2 if cfg.pose_downsample >= 1 else 1)
     x = conv_gn_relu(x, params["down2"], cfg, stride=2 if cfg.pose_downsample == 2 else 1)
@@ -169,8 +171,7 @@ def pose_decoder(
         hidden.append(h)
         w, b = p["out"]["w"], p["out"]["b"]
         if cfg.per_object_heads:
-            obj = jnp.asarray(obj_idx, jnp.int32)
-            w, b = w[obj], b[obj]
+            w, b = w[obj_idx], b[obj_idx]
         outs.append(dense(h, w, b))
     if return_map:
         return outs[0], outs[1], outs[2], hidden[0], maps[0], block

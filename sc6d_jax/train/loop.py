@@ -429,8 +429,7 @@ def train(
                 params = moved.params
                 init_source = moved.source
                 if verbose and pidx == 0:
-                    sizes = {jax.tree_util.keystr(p): int(np.size(x)) for p, x in jax.tree_util.tree_leaves_with_path(params)}
-                    print(f"sc6d train: init_from: {moved.summary(sizes)}", flush=True)
+                    print(f"sc6d train: init_from: {moved.summary()}", flush=True)
             params = _host_tree(params)
             opt_state = _host_tree(tx.init(params))
             ema = None

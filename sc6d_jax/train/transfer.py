@@ -21,6 +21,11 @@ from typing import Any
 import jax
 import numpy as np
 
+from sc6d_jax.checkpoint import flatten_with_paths
+
+#: Prefix of the arrays' names (as in checkpoints: ``params/backbone/stem/conv/w``).
+PREFIX = "params"
+
 
 @dataclass(frozen=True)
 class Transfer:
@@ -28,7 +33,7 @@ class Transfer:
 
     Attributes:
         params: the new model's parameters (numpy pytree).
-        copied: names of the arrays taken from the source.
+        copied: names of the arrays taken from the source (checkpoint names, ``params/backbone/...``).
         per_object: names of the arrays that belong to objects (kept fresh).
         unmatched: names of the object-independent arrays the source has not in that shape (kept fresh).
         source: the checkpoint directory the parameters came from.
@@ -40,28 +45,25 @@ class Transfer:
     unmatched: tuple[str, ...]
     source: str
 
-    def summary(self, params_sizes: dict[str, int]) -> str:
-        n_copied = sum(params_sizes[k] for k in self.copied)
-        n_all = sum(params_sizes.values())
-        return (f"{len(self.copied)} of {len(params_sizes)} parameter arrays ({n_copied:,} of {n_all:,} scalars) "
+    def summary(self) -> str:
+        """One line: how many arrays and scalars came from the source, and what stayed fresh."""
+        sizes = {k: int(np.size(a)) for k, a in flatten_with_paths(self.params, PREFIX).items()}
+        n_copied = sum(sizes[k] for k in self.copied)
+        return (f"{len(self.copied)} of {len(sizes)} parameter arrays ({n_copied:,} of {sum(sizes.values()):,} scalars) "
                 f"from {self.source}; fresh: {len(self.per_object)} per-object"
                 + (f", {len(self.unmatched)} without a match ({', '.join(self.unmatched[:4])}"
                    f"{', ...' if len(self.unmatched) > 4 else ''})" if self.unmatched else ""))
 
 
-def _flat(tree: Any) -> dict[str, Any]:
-    return {jax.tree_util.keystr(p): leaf for p, leaf in jax.tree_util.tree_leaves_with_path(tree)}
-
-
-def per_object_names(init_fn: Any, model_cfg: Any) -> set[str]:
-    """Names of the parameter arrays whose shape depends on ``model_cfg.n_objects`` (found by
-    drawing the model with one object more)."""
-    key = jax.random.PRNGKey(0)
-    a = _flat(init_fn(key, model_cfg))
-    b = _flat(init_fn(key, dataclasses.replace(model_cfg, n_objects=model_cfg.n_objects + 1)))
+def per_object_names(params: Any, init_fn: Any, model_cfg: Any) -> set[str]:
+    """Names of the arrays of ``params`` (a model drawn with ``model_cfg``) whose shape depends on
+    ``model_cfg.n_objects``, found by drawing the model with one object more."""
+    a = flatten_with_paths(params, PREFIX)
+    b = flatten_with_paths(init_fn(jax.random.PRNGKey(0), dataclasses.replace(model_cfg, n_objects=model_cfg.n_objects + 1)),
+                           PREFIX)
     if set(a) != set(b):  # pragma: no cover - a model whose structure depends on the object count
         raise ValueError("the model's parameter structure depends on n_objects; cannot tell the per-object arrays")
-    return {k for k in a if np.shape(a[k]) != np.shape(b[k])}
+    return {k for k in a if a[k].shape != b[k].shape}
 
 
 def transfer_params(params: Any, model_cfg: Any, source: str | os.PathLike, init_fn: Any | None = None) -> Transfer:
@@ -77,26 +79,23 @@ def transfer_params(params: Any, model_cfg: Any, source: str | os.PathLike, init
 
     if init_fn is None:
         from sc6d_jax.model import init as init_fn
-    path = pretrained.check_run(source)
-    ckpt = find_checkpoint(path)
-    src, _ = load_checkpoint(ckpt)
-    src_flat = _flat(src)
-    per_obj = per_object_names(init_fn, model_cfg)
-    flat_with_path, treedef = jax.tree_util.tree_flatten_with_path(params)
+    ckpt = find_checkpoint(pretrained.check_run(source))
+    src_flat = flatten_with_paths(load_checkpoint(ckpt)[0], PREFIX)
+    per_obj = per_object_names(params, init_fn, model_cfg)
+    own = flatten_with_paths(params, PREFIX)  # in the order of the tree's leaves
     leaves, copied, fresh_obj, unmatched = [], [], [], []
-    for p, leaf in flat_with_path:
-        name = jax.tree_util.keystr(p)
+    for name, leaf in own.items():
         if name in per_obj:
             fresh_obj.append(name)
-            leaves.append(np.asarray(leaf))
-        elif name in src_flat and np.shape(src_flat[name]) == np.shape(leaf):
+            leaves.append(leaf)
+        elif name in src_flat and src_flat[name].shape == leaf.shape:
             copied.append(name)
-            leaves.append(np.array(src_flat[name], dtype=np.asarray(leaf).dtype))
+            leaves.append(src_flat[name].astype(leaf.dtype))
         else:
             unmatched.append(name)
-            leaves.append(np.asarray(leaf))
-    if not any(n.startswith("['backbone']") for n in copied):
+            leaves.append(leaf)
+    if not any(n.startswith(f"{PREFIX}/backbone/") for n in copied):
         raise ValueError(f"init_from {source}: no backbone array of {ckpt} fits this model "
                          f"(another crop size, width or backbone?); unmatched: {', '.join(unmatched[:4])}")
-    return Transfer(jax.tree_util.tree_unflatten(treedef, leaves), tuple(copied), tuple(fresh_obj), tuple(unmatched),
+    return Transfer(jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(params), leaves), tuple(copied), tuple(fresh_obj), tuple(unmatched),
                     str(ckpt))
