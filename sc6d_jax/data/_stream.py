@@ -894,13 +894,15 @@ class CropStream:
             return out
         assert self._pool is not None
         ring = self._ring
-        while len(self._pending) < 2 * self.cfg.workers:
-            b = self._next + len(self._pending)
-            if ring is None:
-                self._pending.append(self._pool.submit(_render_batch, b))
-            else:
-                self._pending.append(self._pool.submit(_render_batch_to_slot, b, b % ring.n))
         try:
+            # a worker that died while none of its batches was in flight breaks the pool too:
+            # then the submit, not the result, is where the stream hears of it
+            while len(self._pending) < 2 * self.cfg.workers:
+                b = self._next + len(self._pending)
+                if ring is None:
+                    self._pending.append(self._pool.submit(_render_batch, b))
+                else:
+                    self._pending.append(self._pool.submit(_render_batch_to_slot, b, b % ring.n))
             out = self._pending.popleft().result()
         except cf.process.BrokenProcessPool as err:
             self._restart_pool(err)
