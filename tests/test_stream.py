@@ -355,10 +355,9 @@ def test_a_dead_worker_is_replaced_and_the_stream_goes_on(models, capsys):
         for w, g in zip(want, got):
             for k in w:
                 np.testing.assert_array_equal(w[k], g[k])
-        # A worker that dies while nothing of its is in flight: the pool is broken before the
-        # next call, whose first submit (not a result) reports it. Waiting for the pool to know
-        # makes this deterministic: a batch done before the kill cannot come back first and reset
-        # the count of deaths in a row.
+        # Once the pool knows of the kill, the next call's first submit reports it before any
+        # result is read, so a batch finished before the kill cannot come back first and reset
+        # the count of deaths in a row (the race this test once had).
         s._restarts = _stream.MAX_WORKER_RESTARTS  # as if it had died that often already
         for pid in list(s._pool._processes):
             os.kill(pid, signal.SIGKILL)
