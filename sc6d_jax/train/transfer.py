@@ -55,15 +55,15 @@ class Transfer:
                    f"{', ...' if len(self.unmatched) > 4 else ''})" if self.unmatched else ""))
 
 
-def per_object_names(params: Any, init_fn: Any, model_cfg: Any) -> set[str]:
-    """Names of the arrays of ``params`` (a model drawn with ``model_cfg``) whose shape depends on
-    ``model_cfg.n_objects``, found by drawing the model with one object more."""
-    a = flatten_with_paths(params, PREFIX)
-    b = flatten_with_paths(init_fn(jax.random.PRNGKey(0), dataclasses.replace(model_cfg, n_objects=model_cfg.n_objects + 1)),
-                           PREFIX)
-    if set(a) != set(b):  # pragma: no cover - a model whose structure depends on the object count
+def per_object_names(flat: dict[str, np.ndarray], init_fn: Any, model_cfg: Any) -> set[str]:
+    """Names of the arrays in ``flat`` (a model drawn with ``model_cfg``, flattened by
+    :func:`flatten_with_paths` with :data:`PREFIX`) whose shape depends on ``model_cfg.n_objects``,
+    found by drawing the model with one object more."""
+    more = flatten_with_paths(init_fn(jax.random.PRNGKey(0), dataclasses.replace(model_cfg, n_objects=model_cfg.n_objects + 1)),
+                              PREFIX)
+    if set(flat) != set(more):  # pragma: no cover - a model whose structure depends on the object count
         raise ValueError("the model's parameter structure depends on n_objects; cannot tell the per-object arrays")
-    return {k for k in a if a[k].shape != b[k].shape}
+    return {k for k in flat if flat[k].shape != more[k].shape}
 
 
 def transfer_params(params: Any, model_cfg: Any, source: str | os.PathLike, init_fn: Any | None = None) -> Transfer:
@@ -75,27 +75,27 @@ def transfer_params(params: Any, model_cfg: Any, source: str | os.PathLike, init
     backbone fits (a source of another architecture: crop size, width or backbone).
     """
     from sc6d_jax import pretrained
-    from sc6d_jax.checkpoint import find_checkpoint, load_checkpoint
+    from sc6d_jax.checkpoint import find_checkpoint, load_checkpoint, unflatten_like
 
     if init_fn is None:
         from sc6d_jax.model import init as init_fn
     ckpt = find_checkpoint(pretrained.check_run(source))
     src_flat = flatten_with_paths(load_checkpoint(ckpt)[0], PREFIX)
-    per_obj = per_object_names(params, init_fn, model_cfg)
-    own = flatten_with_paths(params, PREFIX)  # in the order of the tree's leaves
-    leaves, copied, fresh_obj, unmatched = [], [], [], []
+    own = flatten_with_paths(params, PREFIX)
+    per_obj = per_object_names(own, init_fn, model_cfg)
+    out, copied, fresh_obj, unmatched = {}, [], [], []
     for name, leaf in own.items():
         if name in per_obj:
             fresh_obj.append(name)
-            leaves.append(leaf)
+            out[name] = leaf
         elif name in src_flat and src_flat[name].shape == leaf.shape:
             copied.append(name)
-            leaves.append(src_flat[name].astype(leaf.dtype))
+            out[name] = src_flat[name].astype(leaf.dtype)
         else:
             unmatched.append(name)
-            leaves.append(leaf)
+            out[name] = leaf
     if not any(n.startswith(f"{PREFIX}/backbone/") for n in copied):
         raise ValueError(f"init_from {source}: no backbone array of {ckpt} fits this model "
                          f"(another crop size, width or backbone?); unmatched: {', '.join(unmatched[:4])}")
-    return Transfer(jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(params), leaves), tuple(copied), tuple(fresh_obj), tuple(unmatched),
+    return Transfer(unflatten_like(params, out, PREFIX, str(ckpt)), tuple(copied), tuple(fresh_obj), tuple(unmatched),
                     str(ckpt))
