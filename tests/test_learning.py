@@ -67,6 +67,28 @@ def test_validator_scores_ground_truth_as_perfect(models, monkeypatch):
     assert s["val_centre_median_px"] < 1e-3 and s["val_rot_median_deg"] < 0.01
 
 
+def test_object_weights_reach_the_training_stream_but_not_the_validation_crops(models):
+    """``stream.obj_weights`` (set with ``--set``) goes to the training stream's fields; the
+    validation crops stay uniform, so weighted and unweighted runs are scored on the same crops."""
+    from sc6d_jax.train.cli import apply_overrides
+    from sc6d_jax.train.loop import stream_fields
+    from sc6d_jax.train.validate import Validator
+
+    cfg = apply_overrides(_resolved_tiny(models), ["stream.obj_ids=1,5", "stream.obj_weights=3,1"])
+    assert cfg.stream.obj_weights == (3.0, 1.0) and cfg.model.n_objects == 2
+    assert stream_fields(cfg, models, 0)["obj_weights"] == (3.0, 1.0)
+    plain = cfg.replace(stream=dataclasses.replace(cfg.stream, obj_weights=None))
+    assert "obj_weights" not in stream_fields(plain, models, 0)
+    a = Validator(cfg, models, n=16, lib_size=1000, batch=16)
+    b = Validator(plain, models, n=16, lib_size=1000, batch=16)
+    assert a.fingerprint == b.fingerprint
+    for items, msg in ((["stream.obj_weights=1,2"], "set stream.obj_ids too"),
+                       (["stream.obj_ids=1,5", "stream.obj_weights=1,2,3"], "3 weights for 2 objects"),
+                       (["stream.obj_ids=1,5", "stream.obj_weights=1,-1"], "positive")):
+        with pytest.raises(ValueError, match=msg):
+            apply_overrides(preset("tiny"), items)
+
+
 def test_validator_matches_each_crop_against_its_own_objects_grid(models):
     """Several objects: the validator's blockwise per-object matching picks, for every crop, the
     grid rotation of highest cosine among its own object's embeddings (a dense reference)."""

@@ -502,3 +502,23 @@ def test_clean_view_is_the_visible_target_before_colour_augmentation(models):
     assert turned > 0 and changed > 0
     with pytest.raises(ValueError, match="view"):
         StreamConfig(**kw, view=5)
+
+
+def test_object_weights_steer_how_often_each_object_is_drawn(models):
+    """``obj_weights`` draws the objects in proportion (a real stream's batches: 3 to 1 over
+    192 crops); without them the stream is the uniform one; the z range does not change."""
+    kw = dict(crop_size=32, batch_size=64, workers=0, seed=2, obj_ids=(1, 5), augment=False, occlusion=0.0)
+    with CropStream(StreamConfig(str(models), obj_weights=(3, 1), **kw)) as s:
+        ids = np.concatenate([s.batch(b)["obj_id"] for b in range(3)])
+    share = float(np.mean(ids == 1))
+    assert 0.65 < share < 0.85, share  # 0.75 expected; SE 0.03
+    with CropStream(StreamConfig(str(models), **kw)) as s:
+        uniform = np.concatenate([s.batch(b)["obj_id"] for b in range(3)])
+    assert 0.38 < float(np.mean(uniform == 1)) < 0.62
+    assert delta_z_range(StreamConfig(str(models), obj_weights=(3, 1), **kw), n=200) == \
+        delta_z_range(StreamConfig(str(models), **kw), n=200)
+    for bad, msg in (((1,), "1 weights for 2 objects"), ((1, 0), "positive"), ((1, float("nan")), "positive")):
+        with pytest.raises(ValueError, match=msg):
+            StreamConfig(str(models), obj_weights=bad, **{**kw, "obj_ids": (1, 5)})
+    with pytest.raises(ValueError, match="set obj_ids too"):
+        StreamConfig(str(models), obj_weights=(1, 2))

@@ -98,6 +98,7 @@ def sample_pose(
     box_shift: float = 0.25,
     box_scale: tuple[float, float] = (0.75, 1.25),
     placement: tuple[float, float] = (0.15, 0.85),
+    obj_p: np.ndarray | None = None,
 ) -> SamplePose:
     """A random object, camera, rotation (Haar) and position whose centre projects inside the image.
 
@@ -105,8 +106,12 @@ def sample_pose(
     range of apparent sizes (about 40-250 px in a 640x480 image at f ~ 600). The centre projects
     to (u, v) uniform in ``placement`` (fractions of the image's width and height): the default
     middle 70 % puts targets up to about 20 degrees off the optical axis (25 in the corners).
+    ``obj_p``: each object's probability (in the order of ``obj_ids``; None = uniform).
     """
-    obj_id = int(obj_ids[rng.integers(len(obj_ids))])
+    if obj_p is None:
+        obj_id = int(obj_ids[rng.integers(len(obj_ids))])
+    else:
+        obj_id = int(obj_ids[rng.choice(len(obj_ids), p=obj_p)])
     K = random_intrinsics(rng)
     R = random_rotation(rng)
     z = diameters[obj_id] * rng.uniform(*distance)

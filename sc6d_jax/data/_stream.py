@@ -67,6 +67,10 @@ class StreamConfig:
         workers: worker processes (0 = render in this process).
         obj_ids: objects to sample (None = every model in the folder); the index of an id in
             this list is the sample's ``obj_idx``.
+        obj_weights: how often each object of ``obj_ids`` is drawn, relative to the others (one
+            positive weight per id, in their order); None = all equally often (the streams of
+            earlier runs are unchanged). The z range (``delta_z_range``) draws uniformly either
+            way, so a weighted run decodes depth as the unweighted one does.
         augment: colour augmentation (p 0.8) and random in-plane 90-degree rotations.
         pe_turns: the PE map turns with the crop in that augmentation (``sc6d_jax.geometry.turn_pe``;
             False = the authors': it stays unturned).
@@ -182,6 +186,7 @@ class StreamConfig:
     seed: int = 0
     workers: int = 2
     obj_ids: tuple[int, ...] | None = None
+    obj_weights: tuple[float, ...] | None = None
     augment: bool = True
     pe_turns: bool = False
     occlusion: float = 0.5
@@ -235,6 +240,22 @@ class StreamConfig:
             raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
         if self.workers < 0:
             raise ValueError(f"workers must be >= 0, got {self.workers}")
+        if self.obj_weights is not None:
+            object.__setattr__(self, "obj_weights", object_weights(self.obj_weights, self.obj_ids))
+
+
+def object_weights(weights, obj_ids, prefix: str = "") -> tuple[float, ...]:
+    """``weights`` as a tuple of floats, checked: one positive finite weight per id of ``obj_ids``
+    (ValueError naming ``prefix + "obj_weights"`` otherwise)."""
+    w = _float_pair(weights)
+    if not w or not all(np.isfinite(x) and x > 0 for x in w):
+        raise ValueError(f"{prefix}obj_weights must be positive numbers, one per object, got {weights!r}")
+    if obj_ids is None:
+        raise ValueError(f"{prefix}obj_weights weighs the objects of obj_ids in their order: set {prefix}obj_ids too")
+    if len(w) != len(obj_ids):
+        raise ValueError(f"{prefix}obj_weights has {len(w)} weights for {len(obj_ids)} objects "
+                         f"(obj_ids {tuple(obj_ids)}): give one per object, in their order")
+    return w
 
 
 #: The stream's realism options for real test images (StreamConfig fields, all off by default),
@@ -242,7 +263,7 @@ class StreamConfig:
 #: that the training settings (``sc6d_jax.train.config.StreamSettings``) and loop follow.
 REALISM_OPTIONS = ("materials", "resample", "sensor", "distractors", "object_gain", "object_contrast",
                    "object_colour", "scene_backgrounds", "shadows", "tabletop", "tabletop_spacing")
-PASSED_WHEN_SET = (*REALISM_OPTIONS, "max_faces", "image_border")
+PASSED_WHEN_SET = (*REALISM_OPTIONS, "max_faces", "image_border", "obj_weights")
 
 
 def check_options(cfg, prefix: str = "") -> None:
@@ -516,8 +537,9 @@ class _Worker:
         from sc6d_jax import geometry as G
 
         cfg = self.cfg
+        p_obj = None if cfg.obj_weights is None else np.asarray(cfg.obj_weights) / np.sum(cfg.obj_weights)
         poses = [sample_pose(r, self.obj_ids, self.vertices, self.diameters, cfg.distance, box_shift=cfg.box_shift,
-                             box_scale=cfg.box_scale, placement=cfg.placement) for r in rngs]
+                             box_scale=cfg.box_scale, placement=cfg.placement, obj_p=p_obj) for r in rngs]
         centers = np.array([[p.box[0] + p.box[2] / 2, p.box[1] + p.box[3] / 2] for p in poses])
         sides = np.array([cfg.pad * max(p.box[2], p.box[3]) for p in poses])
         T = np.asarray(G.crop_transform(centers, sides, cfg.crop_size), np.float64)

@@ -56,6 +56,10 @@ class StreamSettings:
         batch_size: global batch size (split over devices and processes).
         obj_ids: BOP ids of the objects to train on; ``None`` = every model in the folder
             (resolved to the actual tuple when training starts).
+        obj_weights: how often each object of ``obj_ids`` is drawn for training, relative to
+            the others (one positive weight per id, in their order; needs ``obj_ids``); None =
+            all equally often. The validation crops stay uniform, so runs with and without
+            weights are scored on the same crops.
         augment: colour augmentation and random in-plane 90-degree rotations.
         occlusion: probability that occluders are drawn over the target (``None`` = the
             stream's default).
@@ -89,6 +93,7 @@ class StreamSettings:
 
     batch_size: int = 32
     obj_ids: tuple[int, ...] | None = None
+    obj_weights: tuple[float, ...] | None = None
     augment: bool = True
     occlusion: float | None = None
     curriculum: int = 0
@@ -149,6 +154,10 @@ class StreamSettings:
             if len(set(ids)) != len(ids):
                 raise ValueError(f"stream.obj_ids has duplicates: {self.obj_ids!r}")
             object.__setattr__(self, "obj_ids", ids)
+        if self.obj_weights is not None:
+            from sc6d_jax.data._stream import object_weights
+
+            object.__setattr__(self, "obj_weights", object_weights(self.obj_weights, self.obj_ids, "stream."))
         if self.occlusion is not None and not 0.0 <= self.occlusion <= 1.0:
             raise ValueError(f"stream.occlusion must be in [0, 1] or None, got {self.occlusion!r}")
         if not isinstance(self.curriculum, int) or self.curriculum < 0:
