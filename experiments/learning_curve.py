@@ -102,13 +102,14 @@ def curve_rows(name: str, run_dir: Path, base_dir: Path | None = None) -> list[d
 
 
 def val_shares(run_dir: Path) -> dict[int, tuple[str | None, "np.ndarray"]]:
-    """step -> (crops fingerprint, each validation crop's share of val_ar) of a run (the last
-    record of a step wins: a resumed run validates its step again); {} for runs before the file."""
+    """step -> (crops fingerprint, each validation crop's share of val_ar) of a run (its folder,
+    or its ``val_shares.jsonl`` itself; the last record of a step wins: a resumed run validates
+    its step again); {} for runs before the file."""
     import numpy as np
 
     from sc6d_jax.train.loop import VAL_SHARES
 
-    path = run_dir / VAL_SHARES
+    path = run_dir if run_dir.is_file() else run_dir / VAL_SHARES
     out = {}
     if path.is_file():
         for line in path.read_text().splitlines():

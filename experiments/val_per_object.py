@@ -18,8 +18,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
-import math
 import sys
 from pathlib import Path
 
@@ -27,24 +25,23 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "experiments"))
+
+from learning_curve import val_shares  # noqa: E402
+
+from sc6d_jax.metrics import standard_error  # noqa: E402
 
 COLUMNS = ("step", "obj_id", "crops", "ar", "base_ar", "diff", "diff_se")
 
 
 def read_shares(path: Path) -> dict[int, tuple[str | None, np.ndarray]]:
     """step -> (crops digest, each crop's share of val_ar) from a run folder or a val_shares.jsonl
-    file (the last record of a step wins: a resumed run validates its step again)."""
-    from sc6d_jax.train.loop import VAL_SHARES
-
-    f = path / VAL_SHARES if path.is_dir() else path
-    if not f.is_file():
-        raise FileNotFoundError(f"no validation shares at {f} (runs log them since the per-crop shares were added)")
-    out = {}
-    for line in f.read_text().splitlines():
-        rec = json.loads(line)
-        out[int(rec["step"])] = (rec.get("crops"), np.asarray(rec["shares"], np.float64))
+    file (``learning_curve.val_shares``); an error when there are none."""
+    if not path.exists():
+        raise FileNotFoundError(f"no validation shares at {path}")
+    out = val_shares(path)
     if not out:
-        raise ValueError(f"{f} holds no validation records")
+        raise ValueError(f"no validation records at {path} (runs log them since the per-crop shares were added)")
     return out
 
 
@@ -56,10 +53,6 @@ def crop_objects(run_dir: Path, models: Path) -> tuple[str, np.ndarray]:
     cfg = TrainConfig.from_json((run_dir / "config.json").read_text())
     v = Validator(cfg, models, n=cfg.val_crops, lib_size=1000)
     return v.fingerprint, np.asarray(v.data["obj_id"], np.int64)
-
-
-def _se(d: np.ndarray) -> float | None:
-    return float(np.std(d, ddof=1) / math.sqrt(len(d))) if len(d) > 1 else None
 
 
 def per_object_rows(obj_id: np.ndarray, digest: str, mine: dict, base: dict | None = None) -> list[dict]:
@@ -85,7 +78,7 @@ def per_object_rows(obj_id: np.ndarray, digest: str, mine: dict, base: dict | No
             row = {"step": step, "obj_id": name, "crops": int(m.sum()), "ar": float(s[m].mean())}
             if b is not None:
                 d = s[m] - b[m]
-                row.update(base_ar=float(b[m].mean()), diff=float(d.mean()), diff_se=_se(d))
+                row.update(base_ar=float(b[m].mean()), diff=float(d.mean()), diff_se=standard_error(d))
             rows.append(row)
     return rows
 

@@ -479,6 +479,8 @@ class _Worker:
 
         self.cfg = cfg
         self.obj_ids = resolve_obj_ids(cfg)
+        #: each object's probability in the order of obj_ids (None = uniform)
+        self.obj_p = None if cfg.obj_weights is None else np.asarray(cfg.obj_weights) / np.sum(cfg.obj_weights)
         infos = load_models_info(cfg.models_dir)
         all_ids = sorted(infos)
         meshes = {i: load_mesh(model_path(cfg.models_dir, i)) for i in all_ids}
@@ -537,9 +539,8 @@ class _Worker:
         from sc6d_jax import geometry as G
 
         cfg = self.cfg
-        p_obj = None if cfg.obj_weights is None else np.asarray(cfg.obj_weights) / np.sum(cfg.obj_weights)
         poses = [sample_pose(r, self.obj_ids, self.vertices, self.diameters, cfg.distance, box_shift=cfg.box_shift,
-                             box_scale=cfg.box_scale, placement=cfg.placement, obj_p=p_obj) for r in rngs]
+                             box_scale=cfg.box_scale, placement=cfg.placement, obj_p=self.obj_p) for r in rngs]
         centers = np.array([[p.box[0] + p.box[2] / 2, p.box[1] + p.box[3] / 2] for p in poses])
         sides = np.array([cfg.pad * max(p.box[2], p.box[3]) for p in poses])
         T = np.asarray(G.crop_transform(centers, sides, cfg.crop_size), np.float64)
