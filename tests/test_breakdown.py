@@ -3,6 +3,7 @@ objects, misses, the summary, the scores of evaluate_images and ``sc6d eval`` en
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -319,18 +320,26 @@ def test_eval_cli_breakdown_on_a_rendered_dataset(models, tmp_path, capsys):
     assert "by visible fraction of the target:" in printed
     assert "by angle of the target's ray from the optical axis:" in printed
     assert "by the target's extent across the view" in printed
-    # --oracle: one part of every pose from the ground truth; the other part's errors stay
-    for part, rot_ok, depth_ok in (("rotation", n - 1, n - n_depth - 1), ("translation", n - n_rot - 1, n - 1)):
+    # --oracle: parts of every pose from the ground truth; the other parts' errors stay (the
+    # first target's 6 % in depth goes with "depth", stays with "centre")
+    for part, rot_ok, depth_ok in (("rotation", n - 1, n - n_depth - 1), ("translation", n - n_rot - 1, n - 1),
+                                   ("depth", n - n_rot - 1, n - 1), ("centre", n - n_rot - 1, n - n_depth - 1),
+                                   ("depth,rotation", n - 1, n - 1)):
         o = tmp_path / f"oracle_{part}.json"
         assert main(["--dataset", str(root), "--results", str(csv), "--out", str(o), "--no-vsd", "--no-progress",
                      "--oracle", part]) == 0
         so = json.loads(o.read_text())
-        assert so["oracle"] == part
+        assert so["oracle"] == ("rotation,depth" if part == "depth,rotation" else part)
         bo = so["breakdown"]["overall"]
         assert bo["missed"] == 1  # a missing estimate is not made up
         assert bo["rot_under_5"] == pytest.approx(rot_ok / n)
         assert bo["depth_under_2pct"] == pytest.approx(depth_ok / n)
-    assert "oracle: every estimate's translation taken from the ground truth" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "oracle: every estimate's translation taken from the ground truth (the AR measures the rotation" in printed
+    assert "every estimate's centre taken from the ground truth (the AR measures the rotation and the depth" in printed
+    assert "every estimate's rotation and depth taken from the ground truth (the AR measures the centre" in printed
+    with pytest.raises(ValueError, match="oracle part must be one of"):
+        main(["--dataset", str(root), "--results", str(csv), "--out", str(tmp_path / "x.json"), "--oracle", "scale"])
     with pytest.raises(ValueError, match="--oracle and --figures do not go together"):
         main(["--dataset", str(root), "--results", str(csv), "--out", str(tmp_path / "x.json"), "--oracle", "rotation",
               "--figures", str(tmp_path / "f")])
@@ -338,3 +347,15 @@ def test_eval_cli_breakdown_on_a_rendered_dataset(models, tmp_path, capsys):
 
     with pytest.raises(ValueError, match="oracle part must be one of"):
         with_ground_truth(ds, ests, "scale")
+    # depth and centre split the translation as the network predicts it: the distance along the
+    # estimate's ray, and the ray (projected centre) at the estimate's distance
+    off = [dataclasses.replace(e, t=e.t * np.array([1.03, 0.97, 1.1]) + np.array([5.0, -4.0, 0.0])) for e in ests]
+    gt = with_ground_truth(ds, off, "translation")
+    for part in ("depth", "centre"):
+        for e, o, g in zip(off, with_ground_truth(ds, off, part), gt):
+            assert np.array_equal(o.R, e.R)
+            ray, z = (e, g) if part == "depth" else (g, e)
+            np.testing.assert_allclose(o.t[:2] / o.t[2], ray.t[:2] / ray.t[2], rtol=1e-12)
+            assert o.t[2] == pytest.approx(z.t[2], rel=1e-12)
+    for o, g in zip(with_ground_truth(ds, off, ["centre", "depth"]), gt):
+        np.testing.assert_allclose(o.t, g.t, rtol=1e-12)

@@ -9,8 +9,8 @@ the AR and its standard error, ``paired_difference`` of two scorings on the same
 pose-error breakdown (``rotation_error_deg``, ``pose_errors``, ``breakdown_errors``,
 ``summarize_breakdown``, ``symmetry_rotations``, ``format_breakdown_line``: median rotation,
 relative depth and projected-centre errors, stored by ``evaluate_bop19`` under ``breakdown``);
-``with_ground_truth`` (estimates with their rotation or translation from the ground truth: what
-each head scores alone).
+``with_ground_truth`` (estimates with their rotation, translation, depth or projected centre
+from the ground truth: what each head scores alone).
 The ``sc6d eval`` command lives in ``sc6d_jax.metrics.cli``.
 """
 

@@ -1,7 +1,7 @@
 """``sc6d eval``: BOP19 average recall of a results CSV on a BOP dataset.
 
     sc6d eval --dataset DIR --results METHOD_DATASET-SPLIT.csv --out SCORES.json [--split test]
-              [--figures FIG_DIR [--run RUN_DIR]] [--oracle rotation|translation]
+              [--figures FIG_DIR [--run RUN_DIR]] [--oracle PART[,PART]]
 
 Prints a table (overall and per object) and writes the scores as JSON with the BOP toolkit's key
 names (bop19_average_recall, bop19_average_recall_vsd/_mssd/_mspd, bop19_average_time_per_image)
@@ -15,7 +15,9 @@ AR is the mean of AR_MSSD and AR_MSPD, and the output says so.
 With ``--oracle rotation`` every estimate's rotation is replaced by the ground truth's before
 scoring (``--oracle translation``: its translation), so that the AR measures the other head
 alone (``sc6d_jax.metrics.with_ground_truth``; the scores JSON says ``"oracle"``): the two
-oracles beside the plain AR show which head holds a model back.
+oracles beside the plain AR show which head holds a model back. The translation splits into
+``depth`` (the estimate moved along its own ray to the ground truth's z) and ``centre`` (onto
+the ground truth's ray at its own z); parts combine with commas (``--oracle rotation,depth``).
 
 With ``--figures DIR`` it then writes pictures (``sc6d_jax.viz.write_eval_figures``): overlays of
 the estimated poses on the first images, a per-object AR bar chart and, with ``--run RUN_DIR``
@@ -30,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from sc6d_jax._io import atomic_write_json
-from sc6d_jax.metrics._oracle import ORACLE_PARTS, with_ground_truth
+from sc6d_jax.metrics._oracle import ORACLE_PARTS, oracle_parts, with_ground_truth
 from sc6d_jax.metrics._breakdown import GROUPINGS
 
 
@@ -139,6 +141,17 @@ def _jsonable(scores: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _rest(oracle: str) -> str:
+    """What an oracle of the comma-joined ``oracle`` parts leaves to the estimates, in words."""
+    taken = set(oracle.split(","))
+    if "translation" in taken:
+        taken |= {"depth", "centre"}
+    rest = [p for p in ("rotation", "depth", "centre") if p not in taken]
+    if rest == ["depth", "centre"]:
+        return "the translation"
+    return " and ".join(f"the {p}" for p in rest) if rest else "nothing of the estimates"
+
+
 def main(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(prog="sc6d eval", description="BOP19 metrics (AR) of a results CSV.")
     ap.add_argument("--dataset", required=True, help="BOP dataset folder (models/, models_eval/, SPLIT/, test_targets_bop19.json)")
@@ -154,10 +167,13 @@ def main(argv: list[str]) -> int:
                                                      "rotation distributions with --run)")
     ap.add_argument("--run", default=None, help="training run that made the results (rotation-distribution figures)")
     ap.add_argument("--n-images", type=int, default=4, help="images with overlays in --figures (default 4)")
-    ap.add_argument("--oracle", choices=ORACLE_PARTS, default=None,
-                    help="take this part of every pose from the ground truth (the AR then measures the other "
-                         "head alone)")
+    ap.add_argument("--oracle", default=None, metavar="PART[,PART]",
+                    help=f"take these parts of every pose from the ground truth ({', '.join(ORACLE_PARTS)}; "
+                         "depth: along the estimate's own ray, centre: onto the ground truth's ray at the "
+                         "estimate's depth); the AR then measures the rest")
     args = ap.parse_args(argv)
+    if args.oracle is not None:
+        args.oracle = ",".join(oracle_parts(args.oracle))
     if args.run is not None and args.figures is None:
         raise ValueError("--run is only used with --figures DIR")
     if args.run is not None:
@@ -187,8 +203,8 @@ def main(argv: list[str]) -> int:
     scores["results"] = Path(args.results).name
     if args.oracle is not None:
         scores["oracle"] = args.oracle
-        print(f"oracle: every estimate's {args.oracle} taken from the ground truth (the AR measures the "
-              f"{'translation' if args.oracle == 'rotation' else 'rotation'} alone)")
+        print(f"oracle: every estimate's {args.oracle.replace(',', ' and ')} taken from the ground truth "
+              f"(the AR measures {_rest(args.oracle)} alone)")
     print(format_table(scores))
     atomic_write_json(args.out, _jsonable(scores))
     print(f"scores written to {args.out}")
