@@ -51,3 +51,29 @@ def models(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("builtin") / "models"
     write_models(out)
     return out
+
+
+@pytest.fixture(scope="session")
+def gt_estimates():
+    """``make(dataset, change)``: the ground truth of a BOP dataset's targets as
+    ``PoseEstimate`` (score 1, time 0.1), each target's instance (visible fraction >= 0.1) passed
+    with its index k in its image to ``change(k, gt)``, which returns the estimate's ``(R, t)``
+    or None to leave the target without one. Returns the estimates and the k of each."""
+    def make(ds, change):
+        from sc6d_jax.bop import PoseEstimate
+
+        ests, ks = [], []
+        for scene_id, im_id in sorted({(t.scene_id, t.im_id) for t in ds.targets()}):
+            targets = {t.obj_id for t in ds.targets() if (t.scene_id, t.im_id) == (scene_id, im_id)}
+            k = 0
+            for g, inf in zip(ds.scene_gt(scene_id)[im_id], ds.scene_gt_info(scene_id)[im_id]):
+                if g.obj_id not in targets or inf.visib_fract < 0.1:
+                    continue
+                pose = change(k, g)
+                k += 1
+                if pose is not None:
+                    ests.append(PoseEstimate(scene_id, im_id, g.obj_id, 1.0, pose[0], pose[1], 0.1))
+                    ks.append(k - 1)
+        return ests, ks
+
+    return make

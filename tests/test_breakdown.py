@@ -258,36 +258,32 @@ def test_extent_ratio_of_a_rod_across_and_along_the_view():
 
 
 # ----------------------------------------------------------------------------- sc6d eval
-def test_eval_cli_breakdown_on_a_rendered_dataset(models, tmp_path, capsys):
+def test_eval_cli_breakdown_on_a_rendered_dataset(models, gt_estimates, tmp_path, capsys):
     """A tiny rendered dataset, the ground truth as estimates with known perturbations: per image
     x 1.06 in depth for the first target, 30 deg about x for the second (at least 30 deg for every
     built-in object: no symmetry of theirs is closer), the rest exact, and one target left without
     an estimate."""
-    from sc6d_jax.bop import BopDataset, PoseEstimate, write_results_csv
+    from sc6d_jax.bop import BopDataset, write_results_csv
     from sc6d_jax.metrics.cli import main
     from sc6d_jax.render._dataset import DatasetSpec, render_dataset
 
     root = render_dataset(models, tmp_path / "ds", DatasetSpec(scenes=1, images_per_scene=2, objects_per_image=4,
                                                                width=160, height=120, seed=5), progress=False)
     ds = BopDataset(root)
-    ests, n, n_depth, n_rot, dropped = [], 0, 0, 0, None
-    for scene_id, im_id in sorted({(t.scene_id, t.im_id) for t in ds.targets()}):
-        targets = {t.obj_id for t in ds.targets() if (t.scene_id, t.im_id) == (scene_id, im_id)}
-        k = 0
-        for g, inf in zip(ds.scene_gt(scene_id)[im_id], ds.scene_gt_info(scene_id)[im_id]):
-            if g.obj_id not in targets or inf.visib_fract < 0.1:
-                continue
-            n += 1
-            R, t = g.R, g.t.copy()
-            if k == 0:
-                t, n_depth = t * np.array([1.0, 1.0, 1.06]), n_depth + 1
-            elif k == 1:
-                R, n_rot = R @ rot("x", 30.0), n_rot + 1
-            elif dropped is None:
-                dropped, k = g.obj_id, k + 1
-                continue
-            ests.append(PoseEstimate(scene_id, im_id, g.obj_id, 1.0, R, t, 0.1))
-            k += 1
+    dropped = []
+
+    def change(k, g):
+        if k == 0:
+            return g.R, g.t * np.array([1.0, 1.0, 1.06])
+        if k == 1:
+            return g.R @ rot("x", 30.0), g.t
+        if not dropped:
+            dropped.append(g.obj_id)
+            return None
+        return g.R, g.t
+
+    ests, ks = gt_estimates(ds, change)
+    n, n_depth, n_rot, dropped = len(ests) + 1, ks.count(0), ks.count(1), dropped[0] if dropped else None
     assert n >= 6 and dropped is not None and n_rot >= 1
     csv = write_results_csv(tmp_path / "gt_ds-test.csv", ests)
     out = tmp_path / "scores.json"

@@ -18,11 +18,11 @@ import oracle_ladder as ol  # noqa: E402
 
 
 @pytest.fixture(scope="module")
-def perturbed(models, tmp_path_factory):
+def perturbed(models, gt_estimates, tmp_path_factory):
     """A tiny rendered dataset and the ground truth as estimates: the first target of each image
     6 % too far along its own ray (its projected centre exact), the second turned 30 deg about x,
     the rest exact."""
-    from sc6d_jax.bop import BopDataset, PoseEstimate, write_results_csv
+    from sc6d_jax.bop import BopDataset, write_results_csv
     from sc6d_jax.render._dataset import DatasetSpec, render_dataset
 
     tmp = tmp_path_factory.mktemp("ladder")
@@ -30,18 +30,7 @@ def perturbed(models, tmp_path_factory):
                                                           width=160, height=120, seed=7), progress=False)
     ds = BopDataset(root)
     turn = Rotation.from_euler("x", 30.0, degrees=True).as_matrix()
-    ests, kinds = [], []
-    for scene_id, im_id in sorted({(t.scene_id, t.im_id) for t in ds.targets()}):
-        targets = {t.obj_id for t in ds.targets() if (t.scene_id, t.im_id) == (scene_id, im_id)}
-        k = 0
-        for g, inf in zip(ds.scene_gt(scene_id)[im_id], ds.scene_gt_info(scene_id)[im_id]):
-            if g.obj_id not in targets or inf.visib_fract < 0.1:
-                continue
-            R, t = g.R, g.t * (1.06 if k == 0 else 1.0)
-            R = R @ turn if k == 1 else R
-            ests.append(PoseEstimate(scene_id, im_id, g.obj_id, 1.0, R, t, 0.1))
-            kinds.append(k)
-            k += 1
+    ests, kinds = gt_estimates(ds, lambda k, g: (g.R @ turn if k == 1 else g.R, g.t * (1.06 if k == 0 else 1.0)))
     assert kinds.count(0) >= 1 and kinds.count(1) >= 1 and len(kinds) >= 5
     return root, write_results_csv(tmp / "gt_ds-test.csv", ests), ests
 
