@@ -32,14 +32,14 @@ def perturbed(models, gt_estimates, tmp_path_factory):
     turn = Rotation.from_euler("x", 30.0, degrees=True).as_matrix()
     ests, kinds = gt_estimates(ds, lambda k, g: (g.R @ turn if k == 1 else g.R, g.t * (1.06 if k == 0 else 1.0)))
     assert kinds.count(0) >= 1 and kinds.count(1) >= 1 and len(kinds) >= 5
-    return root, write_results_csv(tmp / "gt_ds-test.csv", ests), ests
+    return root, write_results_csv(tmp / "gt_ds-test.csv", ests), ests, kinds
 
 
 def test_shrink_depth_error_moves_each_estimate_along_its_ray(perturbed):
     from sc6d_jax.bop import BopDataset
     from sc6d_jax.metrics import with_ground_truth
 
-    root, _, ests = perturbed
+    root, _, ests, _ = perturbed
     ds = BopDataset(root)
     true = with_ground_truth(ds, ests, "depth")
     for a in (0.0, 0.5, 1.0):
@@ -51,11 +51,17 @@ def test_shrink_depth_error_moves_each_estimate_along_its_ray(perturbed):
 
 
 def test_ladder_command_scores_every_rung(perturbed, tmp_path, capsys):
-    root, results, _ = perturbed
+    root, results, ests, kinds = perturbed
+    turned = ",".join(str(i) for i in sorted({e.obj_id for e, k in zip(ests, kinds) if k == 1}))
     out = tmp_path / "ladder"
-    assert ol.main(["--dataset", str(root), "--results", str(results), "--out", str(out), "--no-vsd"]) == 0
+    assert ol.main(["--dataset", str(root), "--results", str(results), "--out", str(out), "--no-vsd",
+                    "--rotation-objects", turned]) == 0
     rows = {r["rung"]: r for r in csv.DictReader((out / "oracle_ladder.csv").open())}
-    assert list(rows) == [r for r, _ in ol.RUNGS]
+    names = [r for r, _ in ol.RUNGS]
+    assert list(rows) == names[:2] + [f"rotation@{turned}"] + names[2:]
+    # the turned targets' objects alone from the ground truth: every turn undone, as "rotation"
+    only = {k: v for k, v in rows[f"rotation@{turned}"].items() if k not in ("rung", "what")}
+    assert only == {k: v for k, v in rows["rotation"].items() if k not in ("rung", "what")}
     ar = {k: float(r["ar"]) for k, r in rows.items()}
     depth = {k: float(r["depth_rel_median"]) for k, r in rows.items()}
     # the perturbations cost AR; each is undone by its own oracle, both together by the ladder's top
@@ -72,3 +78,6 @@ def test_ladder_command_scores_every_rung(perturbed, tmp_path, capsys):
     bad = tmp_path / "bad"
     assert ol.main(["--dataset", str(root), "--results", str(tmp_path / "none.csv"), "--out", str(bad)]) == 2
     assert "does not exist" in capsys.readouterr().err and not bad.exists()
+    assert ol.main(["--dataset", str(root), "--results", str(results), "--out", str(bad), "--no-vsd",
+                    "--rotation-objects", "99"]) == 2
+    assert "no estimates of objects [99]" in capsys.readouterr().err and not bad.exists()
