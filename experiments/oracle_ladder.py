@@ -20,7 +20,9 @@ printed: which head, and how much better, a target such as AR 0.85 needs.
 from __future__ import annotations
 
 import argparse
+import csv
 import dataclasses
+import io
 import sys
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -110,9 +112,10 @@ def _f(v: Any, fmt: str) -> str:
 def write_tables(rows: Sequence[dict[str, Any]], out: Path, command: str) -> list[Path]:
     from sc6d_jax._io import atomic_write_text
 
-    keys = list(rows[0])
-    csv = [",".join(keys)] + [",".join("" if r[k] is None else (f'"{r[k]}"' if "," in str(r[k]) else str(r[k]))
-                                       for k in keys) for r in rows]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+    w.writeheader()
+    w.writerows([{k: "" if v is None else v for k, v in r.items()} for r in rows])
     md = [f"The oracle ladder of one results CSV (`{command}`), {rows[0]['targets']} targets:", "",
           "| rung | AR | VSD | MSSD | MSPD | rotation | depth | centre |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -120,7 +123,7 @@ def write_tables(rows: Sequence[dict[str, Any]], out: Path, command: str) -> lis
                   f"{r['rot_median_deg']:.1f} deg | {_f(r['depth_rel_median'] and 100 * r['depth_rel_median'], '.2f')} % | "
                   f"{_f(r['centre_median_px'], '.2f')} px |")
     out.mkdir(parents=True, exist_ok=True)
-    return [atomic_write_text(out / "oracle_ladder.csv", "\n".join(csv) + "\n"),
+    return [atomic_write_text(out / "oracle_ladder.csv", buf.getvalue()),
             atomic_write_text(out / "oracle_ladder.md", "\n".join(md) + "\n")]
 
 
