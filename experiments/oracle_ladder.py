@@ -65,10 +65,9 @@ def rung_estimates(dataset: Any, estimates: Sequence[Any], rung: str) -> list[An
         raise ValueError(f"rung must be one of {[r for r, _ in RUNGS]}, got {rung!r}")
     if rung == "as_estimated":
         return list(estimates)
-    if "/" in rung:
-        parts, div = rung.split("/")
-        rotated = with_ground_truth(dataset, estimates, parts.replace(",depth", ""))
-        return shrink_depth_error(rotated, with_ground_truth(dataset, rotated, "depth"), 1.0 / float(div))
+    if "/" in rung:  # "rotation,depth/N": the true rotation, z / z_gt to its N-th root (about 1/N the error)
+        rotated = with_ground_truth(dataset, estimates, "rotation")
+        return shrink_depth_error(rotated, with_ground_truth(dataset, rotated, "depth"), 1.0 / float(rung.split("/")[1]))
     return with_ground_truth(dataset, estimates, rung)
 
 

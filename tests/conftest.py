@@ -70,10 +70,10 @@ def gt_estimates():
                 if g.obj_id not in targets or inf.visib_fract < 0.1:
                     continue
                 pose = change(k, g)
-                k += 1
                 if pose is not None:
                     ests.append(PoseEstimate(scene_id, im_id, g.obj_id, 1.0, pose[0], pose[1], 0.1))
-                    ks.append(k - 1)
+                    ks.append(k)
+                k += 1
         return ests, ks
 
     return make

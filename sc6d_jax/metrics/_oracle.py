@@ -35,13 +35,25 @@ def oracle_parts(parts: str | Sequence[str]) -> tuple[str, ...]:
     return tuple(p for p in ORACLE_PARTS if p in names)
 
 
-def _translation(t_est: np.ndarray, t_gt: np.ndarray, parts: tuple[str, ...]) -> np.ndarray:
-    """The estimate's translation with ``parts`` of it from the ground truth (mm)."""
-    if "translation" in parts or {"depth", "centre"} <= set(parts):
+#: What a pose is made of for an oracle: "translation" stands for its depth and its centre.
+POSE_PIECES = ("rotation", "depth", "centre")
+
+
+def oracle_pieces(parts: str | Sequence[str]) -> frozenset[str]:
+    """The pieces of ``POSE_PIECES`` that the oracle ``parts`` take from the ground truth."""
+    names = set(oracle_parts(parts))
+    if "translation" in names:
+        names |= {"depth", "centre"}
+    return frozenset(names & set(POSE_PIECES))
+
+
+def _translation(t_est: np.ndarray, t_gt: np.ndarray, pieces: frozenset[str]) -> np.ndarray:
+    """The estimate's translation with ``pieces`` of it from the ground truth (mm)."""
+    if {"depth", "centre"} <= pieces:
         return t_gt
-    if "depth" in parts:  # the estimate's ray, the ground truth's depth
+    if "depth" in pieces:  # the estimate's ray, the ground truth's depth
         return t_est * (t_gt[2] / t_est[2])
-    if "centre" in parts:  # the ground truth's ray, the estimate's depth
+    if "centre" in pieces:  # the ground truth's ray, the estimate's depth
         return t_gt * (t_est[2] / t_gt[2])
     return t_est
 
@@ -57,7 +69,7 @@ def with_ground_truth(dataset: Any, estimates: Sequence[Any], part: str | Sequen
     Args:
         dataset: a ``sc6d_jax.bop.BopDataset`` (its ``scene_gt`` and ``scene_gt_info``).
     """
-    parts = oracle_parts(part)
+    pieces = oracle_pieces(part)
     cache: dict[int, tuple[dict, dict]] = {}
     out = []
     for e in estimates:
@@ -69,7 +81,7 @@ def with_ground_truth(dataset: Any, estimates: Sequence[Any], part: str | Sequen
             out.append(e)
             continue
         g = gts[best[0]]
-        R = np.asarray(g.R, np.float64).reshape(3, 3) if "rotation" in parts else e.R
-        t = _translation(np.asarray(e.t, np.float64).reshape(3), np.asarray(g.t, np.float64).reshape(3), parts)
+        R = np.asarray(g.R, np.float64).reshape(3, 3) if "rotation" in pieces else e.R
+        t = _translation(np.asarray(e.t, np.float64).reshape(3), np.asarray(g.t, np.float64).reshape(3), pieces)
         out.append(dataclasses.replace(e, R=R, t=t))
     return out

@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from sc6d_jax._io import atomic_write_json
-from sc6d_jax.metrics._oracle import ORACLE_PARTS, oracle_parts, with_ground_truth
+from sc6d_jax.metrics._oracle import ORACLE_PARTS, POSE_PIECES, oracle_parts, oracle_pieces, with_ground_truth
 from sc6d_jax.metrics._breakdown import GROUPINGS
 
 
@@ -143,10 +143,8 @@ def _jsonable(scores: dict[str, Any]) -> dict[str, Any]:
 
 def _rest(oracle: str) -> str:
     """What an oracle of the comma-joined ``oracle`` parts leaves to the estimates, in words."""
-    taken = set(oracle.split(","))
-    if "translation" in taken:
-        taken |= {"depth", "centre"}
-    rest = [p for p in ("rotation", "depth", "centre") if p not in taken]
+    taken = oracle_pieces(oracle)
+    rest = [p for p in POSE_PIECES if p not in taken]
     if rest == ["depth", "centre"]:
         return "the translation"
     return " and ".join(f"the {p}" for p in rest) if rest else "nothing of the estimates"
