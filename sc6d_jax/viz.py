@@ -8,6 +8,8 @@
 - :func:`overlay_figures`: side-by-side pictures (image | estimated silhouettes) of a results CSV.
 - :func:`ar_bar_chart`: per-object AR of a ``sc6d eval`` scores dict;
   :func:`grouped_bar_chart`: bars with error bars (the sweeps' per-row chart).
+- :func:`worst_targets_figure`: the lowest-scoring targets, estimate and ground truth side by
+  side.
 - :func:`write_eval_figures`: all of these for a dataset + results CSV (+ run, + scores); what
   ``sc6d eval --figures DIR`` writes.
 
@@ -29,10 +31,12 @@ __all__ = [
     "ar_bar_chart",
     "grouped_bar_chart",
     "in_plane_angle",
+    "lowest_scoring_targets",
     "overlay_figures",
     "rotation_distribution_figure",
     "save_figure",
     "sphere_coords",
+    "worst_targets_figure",
     "write_eval_figures",
 ]
 
@@ -259,6 +263,103 @@ def overlay_figures(
     return written
 
 
+def _target_crop(img: np.ndarray, box: Sequence[float], size: int) -> np.ndarray:
+    """A ``size`` x ``size`` square of ``img`` around a box (x, y, w, h), 1.3x its longer side
+    (zero outside the image)."""
+    import cv2
+
+    x, y, w, h = (float(v) for v in box)
+    half = max(int(round(0.65 * max(w, h))) + 4, 8)
+    cx, cy = int(round(x + w / 2)), int(round(y + h / 2))
+    pad = np.pad(img, ((half, half), (half, half), (0, 0)))
+    cy, cx = int(np.clip(cy, 0, img.shape[0])) + half, int(np.clip(cx, 0, img.shape[1])) + half
+    return cv2.resize(pad[cy - half:cy + half, cx - half:cx + half], (size, size), interpolation=cv2.INTER_AREA)
+
+
+def lowest_scoring_targets(dataset: Any, estimates: Sequence[Any], scores: Mapping[str, Any],
+                           n: int = 12) -> list[dict[str, Any]]:
+    """The ``n`` targets with the lowest share of the AR (``scores["per_target"]``, from
+    ``sc6d eval``), larger rotation error first among equal shares: the rows of
+    :func:`sc6d_jax.metrics.breakdown_errors` (which pairs them with ``estimates``) with
+    ``share`` added. ``dataset`` is a ``sc6d_jax.bop.BopDataset``."""
+    from sc6d_jax.metrics._breakdown import breakdown_errors
+    from sc6d_jax.metrics._evaluate import load_eval_images, load_object_models
+
+    if not isinstance(n, int) or n < 1:
+        raise ValueError(f"n must be a positive int, got {n!r}")
+    shares = {(int(r[0]), int(r[1]), int(r[2])): float(r[4]) for r in scores.get("per_target") or []}
+    if not shares:
+        raise ValueError("scores have no per_target shares (a sc6d eval scores dict is needed)")
+    images = load_eval_images(dataset, with_depth=False)
+    obj_ids = sorted({g.obj_id for img in images for g in img.gts})
+    rows = [dict(r, share=shares[r["scene_id"], r["im_id"], r["gt_id"]])
+            for r in breakdown_errors(images, estimates, load_object_models(dataset, obj_ids))
+            if (r["scene_id"], r["im_id"], r["gt_id"]) in shares]
+    if not rows:
+        raise ValueError("no scored target matches the dataset's ground truths (scores of another dataset?)")
+    rows.sort(key=lambda r: (r["share"], -r["rot_deg"]))
+    return rows[:n]
+
+
+def worst_targets_figure(
+    dataset_dir: str | os.PathLike,
+    results_csv: str | os.PathLike,
+    scores: Mapping[str, Any],
+    n: int = 12,
+    split: str = "test",
+    columns: int = 3,
+    tile: int = 128,
+) -> np.ndarray:
+    """The ``n`` targets that scored lowest (share of the AR, then larger rotation error), as an
+    RGB image: per target the crop around its visible box with the estimate's silhouette (red)
+    and with the ground truth's (green), under a caption ``obj O  AR a  R deg  d %`` (the share
+    of the AR, :func:`sc6d_jax.metrics.pose_errors`' rotation and relative depth error, or
+    ``missed``). ``scores`` is ``sc6d eval``'s dict (its ``per_target``); targets are paired
+    with estimates as in :func:`sc6d_jax.metrics.breakdown_errors`."""
+    import cv2
+
+    from sc6d_jax.bop import BopDataset, model_path, read_results_csv
+    from sc6d_jax.render import load_mesh, render_depth
+
+    if not isinstance(columns, int) or columns < 1:
+        raise ValueError(f"columns must be a positive int, got {columns!r}")
+    ds = BopDataset(dataset_dir, split=split)
+    ests = read_results_csv(results_csv)
+    rows = lowest_scoring_targets(ds, ests, scores, n)
+    groups: dict[tuple[int, int, int], list[Any]] = {}
+    for e in ests:
+        groups.setdefault((e.scene_id, e.im_id, e.obj_id), []).append(e)
+    meshes: dict[int, Any] = {}
+    tiles = []
+    for r in rows:
+        sc, im, o = r["scene_id"], r["im_id"], r["obj_id"]
+        img = ds.load_rgb(sc, im)
+        H, W = img.shape[:2]
+        K = ds.scene_camera(sc)[im].K
+        g = ds.scene_gt(sc)[im][r["gt_id"]]
+        box = ds.scene_gt_info(sc)[im][r["gt_id"]].bbox_visib
+        if o not in meshes:
+            meshes[o] = load_mesh(model_path(ds.models_dir, o))
+        poses = [(None, None) if r["missed"] else (groups[sc, im, o][r["est_id"]].R, groups[sc, im, o][r["est_id"]].t),
+                 (g.R, g.t)]
+        panels = []
+        for (R, t), col in zip(poses, ((255, 64, 64), (64, 255, 64))):
+            pic = img.copy()
+            if R is not None and float(np.asarray(t)[2]) > 0:
+                mask = (render_depth(meshes[o], K, np.asarray(R), np.asarray(t), W, H) > 0).astype(np.uint8)
+                contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+                cv2.drawContours(pic, contours, -1, col, max(1, round(max(H, W) / 320)), cv2.LINE_AA)
+            panels.append(_target_crop(pic, box, tile))
+        cap = np.zeros((18, 2 * tile, 3), np.uint8)
+        what = "missed" if r["missed"] else f"{r['rot_deg']:.0f} deg  {100 * r['depth_rel']:.1f} %"
+        cv2.putText(cap, f"obj {o}  AR {r['share']:.2f}  {what}", (4, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                    (255, 255, 255), 1, cv2.LINE_AA)
+        t_img = np.concatenate([cap, np.concatenate(panels, axis=1)], axis=0)
+        tiles.append(np.pad(t_img, ((2, 2), (2, 2), (0, 0))))
+    tiles += [np.zeros_like(tiles[0])] * (-len(tiles) % columns)
+    return np.concatenate([np.concatenate(tiles[i:i + columns], axis=1) for i in range(0, len(tiles), columns)], axis=0)
+
+
 def _symmetry_rotations(info: Any) -> np.ndarray:
     from sc6d_jax.metrics import symmetry_transformations
 
@@ -285,7 +386,8 @@ def write_eval_figures(
       instances of those images: the model's top-``top_k`` rotations of a
       ``library_size`` library (from the ground-truth visible box) with the ground truth and
       its symmetric equivalents;
-    - with ``scores`` (a ``sc6d eval`` JSON path or dict): ``ar_per_object.png``.
+    - with ``scores`` (a ``sc6d eval`` JSON path or dict): ``ar_per_object.png``, and
+      ``worst_targets.png`` (:func:`worst_targets_figure`) when it has ``per_target``.
     """
     from sc6d_jax.bop import BopDataset, bbox_extent
 
@@ -306,6 +408,11 @@ def write_eval_figures(
             scores = json.loads(sp.read_text(encoding="utf-8"))
         fig = ar_bar_chart(scores)
         written.append(save_figure(fig, out_dir / "ar_per_object.png"))
+        if scores.get("per_target"):
+            from sc6d_jax._io import atomic_write_png
+
+            pic = worst_targets_figure(dataset_dir, results_csv, scores, split=split)
+            written.append(atomic_write_png(out_dir / "worst_targets.png", pic))
 
     if run is not None and n_targets > 0:
         from sc6d_jax.bop import read_results_csv

@@ -49,4 +49,4 @@ def test_demo_with_the_shipped_model(tmp_path, capsys):
     assert scores["breakdown"]["overall"]["n"] == scores["counts"]["targets"]
     pngs = sorted(p.name for p in (out / "figures").glob("*.png"))
     assert any(n.startswith("poses_") for n in pngs) and any(n.startswith("rotdist_") for n in pngs)
-    assert "ar_per_object.png" in pngs
+    assert "ar_per_object.png" in pngs and "worst_targets.png" in pngs

@@ -135,7 +135,7 @@ def test_eval_figures_writes_pngs(ablation_dir, tmp_path):
                  "--out", str(tmp_path / "s.json"), "--no-progress", "--figures", str(figs),
                  "--run", str(out / "runs" / "A4_s0")]) == 0
     names = sorted(p.name for p in figs.iterdir())
-    assert "ar_per_object.png" in names
+    assert "ar_per_object.png" in names and "worst_targets.png" in names
     assert any(n.startswith("poses_") for n in names) and any(n.startswith("rotdist_") for n in names)
     for p in figs.iterdir():
         assert p.read_bytes()[:8] == PNG and p.stat().st_size > 1000

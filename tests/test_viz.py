@@ -108,3 +108,52 @@ def test_bar_charts(tmp_path):
         grouped_bar_chart(["a", "b"], {"AR": [0.1]})
     fig = grouped_bar_chart(["a", "b"], {"AR": [0.1, 0.2]}, errors={"AR": [0.01, 0.02]})
     assert len(fig.axes[0].patches) == 2
+
+
+def test_worst_targets_lists_and_draws_the_lowest_scoring_targets(models, gt_estimates, tmp_path):
+    """On a rendered dataset with the ground truth as estimates: the first target of each image
+    without an estimate, the second turned 90 deg about x, the rest exact. The missed targets
+    come first, then the turned ones, the exact ones last; each tile shows no contour for a miss,
+    the same silhouette as the ground truth's for an exact estimate, another for a turned one."""
+    from scipy.spatial.transform import Rotation
+
+    from sc6d_jax.bop import BopDataset, write_results_csv
+    from sc6d_jax.metrics import evaluate_bop19
+    from sc6d_jax.render._dataset import DatasetSpec, render_dataset
+    from sc6d_jax.viz import _target_crop, lowest_scoring_targets, worst_targets_figure
+
+    root = render_dataset(models, tmp_path / "ds", DatasetSpec(scenes=1, images_per_scene=2, objects_per_image=3,
+                                                               width=160, height=120, seed=3), progress=False)
+    ds = BopDataset(root)
+    turn = Rotation.from_euler("x", 90.0, degrees=True).as_matrix()
+    ests, kinds = gt_estimates(ds, lambda k, g: None if k == 0 else (g.R @ turn if k == 1 else g.R, g.t))
+    results = write_results_csv(tmp_path / "r.csv", ests)
+    scores = evaluate_bop19(ds, ests, renderer=None)
+    n_targets = scores["counts"]["targets"]
+    assert n_targets == len(kinds) + 2 and kinds.count(1) == 2
+
+    rows = lowest_scoring_targets(ds, ests, scores, n=n_targets)
+    assert len(rows) == n_targets
+    assert [r["missed"] for r in rows[:2]] == [True, True] and not any(r["missed"] for r in rows[2:])
+    assert [r["share"] for r in rows] == sorted(r["share"] for r in rows)
+    assert rows[-1]["share"] == pytest.approx(1.0) and rows[-1]["rot_deg"] < 1e-3
+    assert len(lowest_scoring_targets(ds, ests, scores, n=3)) == 3
+
+    tile, cols = 64, 3
+    pic = worst_targets_figure(root, results, scores, n=n_targets, columns=cols, tile=tile)
+    th, tw = 18 + tile + 4, 2 * tile + 4
+    assert pic.shape == (-(-n_targets // cols) * th, cols * tw, 3) and pic.dtype == np.uint8
+    for i, r in enumerate(rows):
+        y, x = (i // cols) * th + 2 + 18, (i % cols) * tw + 2
+        raw = _target_crop(ds.load_rgb(r["scene_id"], r["im_id"]),
+                           ds.scene_gt_info(r["scene_id"])[r["im_id"]][r["gt_id"]].bbox_visib, tile)
+        drawn = [np.any(pic[y:y + tile, x + j * tile:x + (j + 1) * tile] != raw, axis=-1) for j in (0, 1)]
+        assert drawn[1].sum() > 20  # the ground truth's contour
+        if r["missed"]:
+            assert not drawn[0].any()
+        elif r["rot_deg"] < 1e-3:  # the same contour (anti-aliased in another colour: a few edge pixels)
+            assert (drawn[0] != drawn[1]).sum() <= 0.05 * drawn[1].sum()
+        elif r["rot_deg"] > 80:
+            assert (drawn[0] != drawn[1]).sum() > 0.2 * drawn[1].sum()
+    with pytest.raises(ValueError, match="per_target"):
+        lowest_scoring_targets(ds, ests, {"bop19_average_recall": 0.1})
