@@ -319,36 +319,33 @@ def worst_targets_figure(
     import cv2
 
     from sc6d_jax.bop import BopDataset, model_path, read_results_csv
-    from sc6d_jax.render import load_mesh, render_depth
+    from sc6d_jax.inference.cli import draw_silhouette
+    from sc6d_jax.metrics._bop19 import _group_estimates
+    from sc6d_jax.render import load_mesh
 
     if not isinstance(columns, int) or columns < 1:
         raise ValueError(f"columns must be a positive int, got {columns!r}")
     ds = BopDataset(dataset_dir, split=split)
     ests = read_results_csv(results_csv)
     rows = lowest_scoring_targets(ds, ests, scores, n)
-    groups: dict[tuple[int, int, int], list[Any]] = {}
-    for e in ests:
-        groups.setdefault((e.scene_id, e.im_id, e.obj_id), []).append(e)
+    groups = _group_estimates(ests)  # what breakdown_errors' est_id indexes
     meshes: dict[int, Any] = {}
     tiles = []
     for r in rows:
         sc, im, o = r["scene_id"], r["im_id"], r["obj_id"]
         img = ds.load_rgb(sc, im)
-        H, W = img.shape[:2]
         K = ds.scene_camera(sc)[im].K
         g = ds.scene_gt(sc)[im][r["gt_id"]]
         box = ds.scene_gt_info(sc)[im][r["gt_id"]].bbox_visib
         if o not in meshes:
             meshes[o] = load_mesh(model_path(ds.models_dir, o))
-        poses = [(None, None) if r["missed"] else (groups[sc, im, o][r["est_id"]].R, groups[sc, im, o][r["est_id"]].t),
-                 (g.R, g.t)]
+        est = None if r["missed"] else groups[sc, im, o][r["est_id"]][1]
+        poses = (None if est is None else (est.R, est.t), (g.R, g.t))
         panels = []
-        for (R, t), col in zip(poses, ((255, 64, 64), (64, 255, 64))):
+        for pose, col in zip(poses, ((255, 64, 64), (64, 255, 64))):
             pic = img.copy()
-            if R is not None and float(np.asarray(t)[2]) > 0:
-                mask = (render_depth(meshes[o], K, np.asarray(R), np.asarray(t), W, H) > 0).astype(np.uint8)
-                contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-                cv2.drawContours(pic, contours, -1, col, max(1, round(max(H, W) / 320)), cv2.LINE_AA)
+            if pose is not None and float(np.asarray(pose[1])[2]) > 0:
+                draw_silhouette(pic, meshes[o], K, pose[0], pose[1], col)
             panels.append(_target_crop(pic, box, tile))
         cap = np.zeros((18, 2 * tile, 3), np.uint8)
         what = "missed" if r["missed"] else f"{r['rot_deg']:.0f} deg  {100 * r['depth_rel']:.1f} %"
