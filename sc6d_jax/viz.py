@@ -5,6 +5,9 @@
   frame (``R[:, 2]``), coloured by the in-plane angle about that axis (the twist of a
   swing-twist decomposition), sized by probability; the ground truth and its symmetric
   equivalents are rings coloured the same way.
+- :func:`draw_silhouette`, :func:`draw_overlay`: estimated poses drawn on an image (the model's
+  silhouette contour rendered by MuJoCo at the pose, and the box; what ``sc6d predict --overlay``
+  writes).
 - :func:`overlay_figures`: side-by-side pictures (image | estimated silhouettes) of a results CSV.
 - :func:`ar_bar_chart`: per-object AR of a ``sc6d eval`` scores dict;
   :func:`grouped_bar_chart`: bars with error bars (the sweeps' per-row chart).
@@ -29,6 +32,8 @@ import numpy as np
 
 __all__ = [
     "ar_bar_chart",
+    "draw_overlay",
+    "draw_silhouette",
     "grouped_bar_chart",
     "in_plane_angle",
     "lowest_scoring_targets",
@@ -225,6 +230,57 @@ def save_figure(fig, path: str | os.PathLike, dpi: int | None = None) -> Path:
     return atomic_write_bytes(path, buf.getvalue())
 
 
+# ----------------------------------------------------------------------------- pose overlays
+def draw_silhouette(image: np.ndarray, mesh, K: np.ndarray, R: np.ndarray, t: np.ndarray,
+                    colour: tuple[int, int, int]) -> np.ndarray:
+    """Draw, in place on the RGB ``image``, the contour of ``mesh``'s silhouette at pose (R, t mm)
+    seen through K (rendered with MuJoCo, the project's renderer); returns ``image``."""
+    import cv2
+
+    from sc6d_jax.render import render_depth
+
+    H, W = image.shape[:2]
+    mask = (render_depth(mesh, K, np.asarray(R), np.asarray(t), W, H) > 0).astype(np.uint8)
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    cv2.drawContours(image, contours, -1, colour, max(1, round(max(H, W) / 320)), cv2.LINE_AA)
+    return image
+
+
+def draw_overlay(image: np.ndarray, K: np.ndarray, preds, models_dir: str | None) -> np.ndarray:
+    """RGB image with each estimate drawn: the model's silhouette contour rendered at the
+    estimated pose (MuJoCo, the project's renderer) and its box; the object axes when no model
+    file is available."""
+    import cv2
+
+    from sc6d_jax.bop import model_path
+    from sc6d_jax.render import load_mesh
+
+    out = image.copy()
+    colors = [(255, 64, 64), (64, 255, 64), (64, 128, 255), (255, 255, 0), (255, 0, 255), (0, 255, 255)]
+    for n, p in enumerate(preds):
+        col = colors[n % len(colors)]
+        mesh = None
+        if models_dir:
+            try:
+                mesh = load_mesh(model_path(models_dir, p.obj_id))
+            except (FileNotFoundError, ValueError):
+                mesh = None
+        if mesh is not None and p.t[2] > 0:
+            draw_silhouette(out, mesh, K, p.R, p.t, col)
+        else:  # axes, 0.5 x box size at the estimated depth
+            L = 0.5 * max(p.box[2], p.box[3]) * p.t[2] / K[0, 0]
+            ends = np.vstack([np.zeros(3), L * np.eye(3)]) @ p.R.T + p.t
+            uv = ends @ K.T
+            uv = uv[:, :2] / uv[:, 2:3]
+            for a, c in zip(range(1, 4), [(255, 0, 0), (0, 255, 0), (0, 0, 255)]):
+                if np.all(np.isfinite(uv)):
+                    cv2.line(out, tuple(int(v) for v in uv[0]), tuple(int(v) for v in uv[a]), c, 2)
+        x, y, w, h = (int(round(v)) for v in p.box)
+        cv2.rectangle(out, (x, y), (x + w, y + h), col, 1)
+    return out
+
+
+
 # ----------------------------------------------------------------------------- dataset pictures
 def overlay_figures(
     dataset_dir: str | os.PathLike,
@@ -234,11 +290,10 @@ def overlay_figures(
     split: str = "test",
 ) -> list[Path]:
     """Side-by-side PNGs ``poses_SCENE_IM.png`` (image | estimated poses as silhouette contours,
-    ``sc6d_jax.inference.cli.draw_overlay``) for the first ``n_images`` images of the results."""
+    :func:`draw_overlay`) for the first ``n_images`` images of the results."""
     from sc6d_jax._io import atomic_write_png
     from sc6d_jax.bop import BopDataset, bbox_extent, read_results_csv
     from sc6d_jax.inference._estimator import PosePrediction
-    from sc6d_jax.inference.cli import draw_overlay
 
     if not isinstance(n_images, int) or n_images < 0:
         raise ValueError(f"n_images must be a non-negative int, got {n_images!r}")
@@ -319,8 +374,7 @@ def worst_targets_figure(
     import cv2
 
     from sc6d_jax.bop import BopDataset, model_path, read_results_csv
-    from sc6d_jax.inference.cli import draw_silhouette
-    from sc6d_jax.metrics._bop19 import _group_estimates
+    from sc6d_jax.metrics import group_estimates
     from sc6d_jax.render import load_mesh
 
     if not isinstance(columns, int) or columns < 1:
@@ -328,7 +382,7 @@ def worst_targets_figure(
     ds = BopDataset(dataset_dir, split=split)
     ests = read_results_csv(results_csv)
     rows = lowest_scoring_targets(ds, ests, scores, n)
-    groups = _group_estimates(ests)  # what breakdown_errors' est_id indexes
+    groups = group_estimates(ests)  # what breakdown_errors' est_id indexes
     meshes: dict[int, Any] = {}
     tiles = []
     for r in rows:

@@ -22,7 +22,7 @@ cells = [
         "from sc6d_jax.objects import write_models\n"
         "from sc6d_jax.render._dataset import DatasetSpec, render_dataset\n"
         "from sc6d_jax.train import preset, train\n"
-        "from sc6d_jax.inference.cli import draw_overlay\n"
+        "from sc6d_jax.viz import draw_overlay\n"
         "\n"
         "work = Path(tempfile.mkdtemp(prefix='sc6d-quickstart-'))\n"
         "steps = int(os.environ.get('SC6D_NB_STEPS', '400'))\n"

@@ -36,6 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sc6d_jax.viz import draw_overlay
+
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="sc6d predict", description=__doc__.split("\n\n")[0])
@@ -218,55 +220,6 @@ def read_boxes(path: Path, obj_ids: str | None) -> tuple[np.ndarray, list[int]]:
     except ValueError as exc:
         raise ValueError(f"boxes in {path} must be [x, y, w, h]") from exc
     return arr, ids
-
-
-def draw_silhouette(image: np.ndarray, mesh, K: np.ndarray, R: np.ndarray, t: np.ndarray,
-                    colour: tuple[int, int, int]) -> np.ndarray:
-    """Draw, in place on the RGB ``image``, the contour of ``mesh``'s silhouette at pose (R, t mm)
-    seen through K (rendered with MuJoCo, the project's renderer); returns ``image``."""
-    import cv2
-
-    from sc6d_jax.render import render_depth
-
-    H, W = image.shape[:2]
-    mask = (render_depth(mesh, K, np.asarray(R), np.asarray(t), W, H) > 0).astype(np.uint8)
-    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-    cv2.drawContours(image, contours, -1, colour, max(1, round(max(H, W) / 320)), cv2.LINE_AA)
-    return image
-
-
-def draw_overlay(image: np.ndarray, K: np.ndarray, preds, models_dir: str | None) -> np.ndarray:
-    """RGB image with each estimate drawn: the model's silhouette contour rendered at the
-    estimated pose (MuJoCo, the project's renderer) and its box; the object axes when no model
-    file is available."""
-    import cv2
-
-    from sc6d_jax.bop import model_path
-    from sc6d_jax.render import load_mesh
-
-    out = image.copy()
-    colors = [(255, 64, 64), (64, 255, 64), (64, 128, 255), (255, 255, 0), (255, 0, 255), (0, 255, 255)]
-    for n, p in enumerate(preds):
-        col = colors[n % len(colors)]
-        mesh = None
-        if models_dir:
-            try:
-                mesh = load_mesh(model_path(models_dir, p.obj_id))
-            except (FileNotFoundError, ValueError):
-                mesh = None
-        if mesh is not None and p.t[2] > 0:
-            draw_silhouette(out, mesh, K, p.R, p.t, col)
-        else:  # axes, 0.5 x box size at the estimated depth
-            L = 0.5 * max(p.box[2], p.box[3]) * p.t[2] / K[0, 0]
-            ends = np.vstack([np.zeros(3), L * np.eye(3)]) @ p.R.T + p.t
-            uv = ends @ K.T
-            uv = uv[:, :2] / uv[:, 2:3]
-            for a, c in zip(range(1, 4), [(255, 0, 0), (0, 255, 0), (0, 0, 255)]):
-                if np.all(np.isfinite(uv)):
-                    cv2.line(out, tuple(int(v) for v in uv[0]), tuple(int(v) for v in uv[a]), c, 2)
-        x, y, w, h = (int(round(v)) for v in p.box)
-        cv2.rectangle(out, (x, y), (x + w, y + h), col, 1)
-    return out
 
 
 def predict_image(est, args) -> int:

@@ -3,7 +3,8 @@
 Public surface: the pose errors ``re``, ``te``, ``add``, ``adi``, ``mssd``, ``mspd``, ``vsd``
 (the toolkit's arguments, mm, numpy in, float out); ``symmetry_transformations`` and
 ``symmetry_coverage``; ``evaluate_bop19`` (a BOP dataset + estimates -> scores with the toolkit's
-key names), ``evaluate_images`` / ``compute_errors`` / ``score_errors`` (in-memory pieces; per-target shares of
+key names), ``evaluate_images`` / ``compute_errors`` / ``score_errors`` (in-memory pieces; ``group_estimates``
+pairs each target with its estimates as they do; per-target shares of
 the AR and its standard error, ``paired_difference`` of two scorings on the same targets, ``standard_error``);
 ``VsdRenderer`` (depth for VSD in the toolkit's pixel convention); the threshold grids; the
 pose-error breakdown (``rotation_error_deg``, ``pose_errors``, ``breakdown_errors``,
@@ -29,6 +30,7 @@ from sc6d_jax.metrics._bop19 import (
     average_time_per_image,
     compute_errors,
     evaluate_images,
+    group_estimates,
     make_object_model,
     paired_difference,
     score_errors,
@@ -93,6 +95,7 @@ __all__ = [
     "evaluate_bop19",
     "evaluate_images",
     "format_breakdown_line",
+    "group_estimates",
     "load_eval_images",
     "load_object_models",
     "make_object_model",

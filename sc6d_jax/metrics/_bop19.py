@@ -104,7 +104,7 @@ def _attr(e: Any, name: str) -> Any:
     return e[name] if isinstance(e, Mapping) else getattr(e, name)
 
 
-def _group_estimates(estimates: Iterable[Any]) -> dict[tuple[int, int, int], list[tuple[int, Any]]]:
+def group_estimates(estimates: Iterable[Any]) -> dict[tuple[int, int, int], list[tuple[int, Any]]]:
     """(scene, im, obj) -> [(est_id, estimate)] in input order (est_id = position in the group)."""
     groups: dict[tuple[int, int, int], list[tuple[int, Any]]] = {}
     for e in estimates:
@@ -135,7 +135,7 @@ def compute_errors(
     VSD is computed only when ``renderer`` is given and the image has depth.
     Estimates need attributes (or keys) scene_id, im_id, obj_id, score, R (3x3), t (3, mm).
     """
-    groups = _group_estimates(estimates)
+    groups = group_estimates(estimates)
     out: list[EstimateErrors] = []
     it: Iterable[EvalImage] = images
     if progress:

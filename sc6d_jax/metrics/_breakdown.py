@@ -49,7 +49,7 @@ from sc6d_jax.metrics._bop19 import (
     EvalImage,
     ObjectModel,
     _attr,
-    _group_estimates,
+    group_estimates,
     _top_n,
     _valid_gts,
 )
@@ -236,7 +236,7 @@ def breakdown_errors(
         ``extent`` (:func:`extent_ratio` at the ground truth's pose; None for an object without
         a model, which has no estimate either).
     """
-    groups = _group_estimates(estimates)
+    groups = group_estimates(estimates)
     sym_cache: dict[int, np.ndarray] = {}
     out: list[dict[str, Any]] = []
     for img in images:
