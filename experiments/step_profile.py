@@ -103,7 +103,8 @@ def _setup(a: argparse.Namespace, models: Path):
     cfg = preset(a.preset)
     if a.set:
         cfg = apply_overrides(cfg, a.set)
-    cfg = cfg.replace(stream=dataclasses.replace(cfg.stream, obj_ids=tuple(a.obj_ids)))
+    cfg = cfg.replace(stream=dataclasses.replace(cfg.stream, obj_ids=tuple(a.obj_ids)),
+                      model=dataclasses.replace(cfg.model, n_objects=len(a.obj_ids)))
     kw = stream_fields(cfg, models, workers=0)
     kw.pop("curriculum", None)  # the full stream, as after the curriculum
     kw["models_dir"] = str(kw["models_dir"])

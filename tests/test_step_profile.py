@@ -52,3 +52,13 @@ def test_bad_input(tmp_path):
     r = subprocess.run([sys.executable, str(REPO / "experiments" / "step_profile.py"), "--models",
                         str(tmp_path / "none"), "--steps", "1"], capture_output=True, text=True, timeout=300)
     assert r.returncode != 0 and "none" in r.stderr
+
+
+def test_profiles_several_objects(tmp_path, models):
+    """A model of several objects (the config's object count follows --obj-ids)."""
+    out = tmp_path / "p.json"
+    r = subprocess.run([sys.executable, str(REPO / "experiments" / "step_profile.py"), "--preset", "tiny",
+                        "--obj-ids", "1", "2", "--models", str(models), "--steps", "1", "--json", str(out)],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads(out.read_text())["obj_ids"] == [1, 2]
