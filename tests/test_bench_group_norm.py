@@ -13,6 +13,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "experiments"))
@@ -34,6 +35,13 @@ def test_textbook_form_is_the_library_function():
                                        rtol=1e-10, atol=1e-10)
 
 
+def test_benchmark_times_both_forms_of_each_layer_shape():
+    rows = bench_group_norm.bench_layers(rounds=1, n=1)
+    assert [r["what"] for r in rows] == [f"GroupNorm {s}" for s in bench_group_norm.SHAPES]
+    assert all(r["textbook_ms"] > 0 and r["library_ms"] > 0 and r["ratio"] > 0 for r in rows)
+
+
+@pytest.mark.slow  # about a minute: two compiles of the tiny step in a subprocess
 def test_benchmark_times_both_forms_on_the_tiny_step(tmp_path, models):
     out = tmp_path / "b.json"
     r = subprocess.run([sys.executable, str(REPO / "experiments" / "bench_group_norm.py"), "--preset", "tiny",

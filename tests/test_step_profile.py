@@ -36,12 +36,14 @@ def test_op_kinds_sorts_operations_by_what_they_compute():
 
 
 def test_profiles_the_tiny_preset(tmp_path, models):
+    """A model of two objects (the config's object count follows --obj-ids)."""
     out = tmp_path / "p.json"
     r = subprocess.run([sys.executable, str(REPO / "experiments" / "step_profile.py"), "--preset", "tiny",
-                        "--models", str(models), "--steps", "2", "--json", str(out)],
+                        "--obj-ids", "1", "2", "--models", str(models), "--steps", "2", "--json", str(out)],
                        capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     res = json.loads(out.read_text())
+    assert res["obj_ids"] == [1, 2]
     assert res["step_ms_median"] > 0 and res["gflop_per_step"] > 0
     by_kind = res["ms_per_step_by_kind"]
     assert by_kind.get("convolution, forward", 0) > 0 and by_kind.get("convolution, gradient", 0) > 0
@@ -53,12 +55,3 @@ def test_bad_input(tmp_path):
                         str(tmp_path / "none"), "--steps", "1"], capture_output=True, text=True, timeout=300)
     assert r.returncode != 0 and "none" in r.stderr
 
-
-def test_profiles_several_objects(tmp_path, models):
-    """A model of several objects (the config's object count follows --obj-ids)."""
-    out = tmp_path / "p.json"
-    r = subprocess.run([sys.executable, str(REPO / "experiments" / "step_profile.py"), "--preset", "tiny",
-                        "--obj-ids", "1", "2", "--models", str(models), "--steps", "1", "--json", str(out)],
-                       capture_output=True, text=True, timeout=600)
-    assert r.returncode == 0, r.stderr[-2000:]
-    assert json.loads(out.read_text())["obj_ids"] == [1, 2]
