@@ -119,7 +119,7 @@ def bench_step(a: argparse.Namespace, rounds: int, n: int) -> dict:
             models = Path(tmp) / "models"
             objects.write_models(models)
         sp_args = argparse.Namespace(preset=a.preset, obj_ids=a.obj_ids, set=a.set)
-        steps = {}
+        steps, state = {}, {}
         for name in ("textbook", "library"):
             saved = enc.group_norm, pdec.group_norm
             if name == "textbook":  # traced (at the first call) with the textbook form
@@ -130,12 +130,12 @@ def bench_step(a: argparse.Namespace, rounds: int, n: int) -> dict:
                 jax.block_until_ready(m)
             finally:
                 enc.group_norm, pdec.group_norm = saved
-            steps[name] = (step, params, opt, key, batches)
+            steps[name] = (step, key, batches)
+            state[name] = [params, opt]  # the step donates its parameters and optimiser state: carry them
         per = {name: [] for name in steps}
-        state = {name: [params, opt] for name, (_, params, opt, _, _) in steps.items()}
         for _ in range(rounds):
-            for name, (step, _, _, key, batches) in steps.items():
-                st = state[name]  # the step donates its parameters and optimiser state: carry them
+            for name, (step, key, batches) in steps.items():
+                st = state[name]
 
                 def one(step=step, st=st, key=key, batches=batches, i=iter(range(10**9))):
                     k = next(i)
@@ -144,8 +144,9 @@ def bench_step(a: argparse.Namespace, rounds: int, n: int) -> dict:
 
                 per[name].append(_timed(one, n))
     t, lib = float(np.median(per["textbook"])), float(np.median(per["library"]))
-    return {"what": f"training step, {a.preset} preset, objects {a.obj_ids}{' ' + ' '.join(a.set) if a.set else ''}", "textbook_ms": t, "library_ms": lib,
-            "ratio": t / lib}
+    sets = "".join(f" {x}" for x in a.set)
+    return {"what": f"training step, {a.preset} preset, objects {a.obj_ids}{sets}", "textbook_ms": t,
+            "library_ms": lib, "ratio": t / lib}
 
 
 def group_stats(run: str, models: Path) -> list[float]:

@@ -110,7 +110,7 @@ def _setup(a: argparse.Namespace, models: Path):
     kw["models_dir"] = str(kw["models_dir"])
     scfg = StreamConfig(batch_size=cfg.stream.batch_size, seed=0, **kw)
     z_range = resolve_z_range(cfg, scfg, delta_z_range)
-    cfg = cfg.replace(model=dataclasses.replace(cfg.model, n_objects=len(a.obj_ids)), z_range=z_range)
+    cfg = cfg.replace(z_range=z_range)
     with CropStream(scfg) as s:
         batches = [jax.device_put(dict(s.batch(i))) for i in range(4)]
     tx, _ = make_optimizer(cfg)

@@ -280,7 +280,6 @@ def draw_overlay(image: np.ndarray, K: np.ndarray, preds, models_dir: str | None
     return out
 
 
-
 # ----------------------------------------------------------------------------- dataset pictures
 def overlay_figures(
     dataset_dir: str | os.PathLike,

@@ -54,4 +54,3 @@ def test_bad_input(tmp_path):
     r = subprocess.run([sys.executable, str(REPO / "experiments" / "step_profile.py"), "--models",
                         str(tmp_path / "none"), "--steps", "1"], capture_output=True, text=True, timeout=300)
     assert r.returncode != 0 and "none" in r.stderr
-
