@@ -169,7 +169,7 @@ def test_dense_loss_trains_the_head_and_checks_its_inputs():
     lxyz = dataclasses.replace(lcfg, w_dense=0.0, w_dense_xyz=2.0)
     p7 = model.init(jax.random.PRNGKey(0), mxyz)
     b7 = dict(batch, dense=np.concatenate([batch["dense"], rng.normal(size=(b, 8, 8, 3)).astype(np.float32)], -1))
-    (loss7, aux7), g7 = jax.value_and_grad(lambda p: model.loss_fn(p, mxyz, lxyz, b7, key, (1.0, 2.0)), has_aux=True)(p7)
+    (loss7, aux7), g7 = jax.jit(jax.value_and_grad(lambda p: model.loss_fn(p, mxyz, lxyz, b7, key, (1.0, 2.0)), has_aux=True))(p7)
     assert "loss_dense" not in aux7 and float(aux7["loss_dense_xyz"]) > 0
     total7 = sum(getattr(lxyz, "w_" + k) * float(aux7["loss_" + k]) for k in ("rot", "xy", "z", "mask", "dense_xyz"))
     np.testing.assert_allclose(float(loss7), total7, rtol=1e-5)
