@@ -26,6 +26,7 @@ over variance of any group in each GroupNorm layer.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -63,6 +64,21 @@ def textbook_group_norm(x, scale, bias, groups: int, eps: float = 1e-5):
         scale = scale.reshape(scale.shape[0], *extra, c)
         bias = bias.reshape(bias.shape[0], *extra, c)
     return y * scale + bias
+
+
+@contextlib.contextmanager
+def _group_norm_as(fn):
+    """Models built or applied inside use ``fn`` as their GroupNorm (the encoder's and the pose
+    decoder's); the library's form is back afterwards."""
+    import sc6d_jax.model._encoder as enc
+    import sc6d_jax.model._pose_decoder as pdec
+
+    saved = enc.group_norm, pdec.group_norm
+    enc.group_norm = pdec.group_norm = fn
+    try:
+        yield
+    finally:
+        enc.group_norm, pdec.group_norm = saved
 
 
 def _timed(fn, n: int) -> float:
@@ -107,10 +123,11 @@ def bench_step(a: argparse.Namespace, rounds: int, n: int) -> dict:
     import jax
     import jax.numpy as jnp
 
-    import sc6d_jax.model._encoder as enc
-    import sc6d_jax.model._pose_decoder as pdec
     import step_profile
 
+    from sc6d_jax.model import group_norm
+
+    forms = {"textbook": textbook_group_norm, "library": group_norm}
     with tempfile.TemporaryDirectory() as tmp:
         models = a.models
         if models is None:
@@ -120,16 +137,11 @@ def bench_step(a: argparse.Namespace, rounds: int, n: int) -> dict:
             objects.write_models(models)
         sp_args = argparse.Namespace(preset=a.preset, obj_ids=a.obj_ids, set=a.set)
         steps, state = {}, {}
-        for name in ("textbook", "library"):
-            saved = enc.group_norm, pdec.group_norm
-            if name == "textbook":  # traced (at the first call) with the textbook form
-                enc.group_norm = pdec.group_norm = textbook_group_norm
-            try:
+        for name, form in forms.items():
+            with _group_norm_as(form):  # traced (at the first call) with this form
                 step, params, opt, key, batches = step_profile._setup(sp_args, models)
                 params, opt, m = step(params, opt, batches[0], jnp.int32(0), key)
                 jax.block_until_ready(m)
-            finally:
-                enc.group_norm, pdec.group_norm = saved
             steps[name] = (step, key, batches)
             state[name] = [params, opt]  # the step donates its parameters and optimiser state: carry them
         per = {name: [] for name in steps}
@@ -155,36 +167,27 @@ def group_stats(run: str, models: Path) -> list[float]:
     import jax
     import jax.numpy as jnp
 
-    import sc6d_jax.model._encoder as enc
-    import sc6d_jax.model._pose_decoder as pdec
+    import step_profile
+
     from sc6d_jax.checkpoint import load_checkpoint
-    from sc6d_jax.data import CropStream, StreamConfig
-    from sc6d_jax.model import apply
+    from sc6d_jax.data import CropStream
+    from sc6d_jax.model import apply, group_norm
     from sc6d_jax.pretrained import resolve
-    from sc6d_jax.train.loop import stream_fields
 
     params, cfg = load_checkpoint(resolve(run)[0])
-    kw = stream_fields(cfg, models, workers=0)
-    kw.pop("curriculum", None)
-    kw["models_dir"] = str(kw["models_dir"])
-    with CropStream(StreamConfig(batch_size=32, seed=5, **kw)) as s:
+    with CropStream(step_profile.full_stream_config(cfg, models, 32, seed=5)) as s:
         b = s.batch(0)
     worst: list[float] = []
-    saved = enc.group_norm, pdec.group_norm
 
     def recording(x, scale, bias, groups, eps=1e-5):
         xg = np.asarray(x, np.float64)
         xg = xg.reshape(xg.shape[0], -1, groups, xg.shape[-1] // groups)
         worst.append(float(np.max(xg.mean(axis=(1, 3)) ** 2 / (xg.var(axis=(1, 3)) + eps))))
-        return saved[0](x, scale, bias, groups, eps)
+        return group_norm(x, scale, bias, groups, eps)
 
-    enc.group_norm = pdec.group_norm = recording
-    try:
-        with jax.disable_jit():
-            apply(params, cfg.model, jnp.asarray(b["rgb"]), jnp.asarray(b["pe"]) if cfg.model.use_pe else None,
-                  jnp.asarray(b["obj_idx"]))
-    finally:
-        enc.group_norm, pdec.group_norm = saved
+    with _group_norm_as(recording), jax.disable_jit():
+        apply(params, cfg.model, jnp.asarray(b["rgb"]), jnp.asarray(b["pe"]) if cfg.model.use_pe else None,
+              jnp.asarray(b["obj_idx"]))
     return worst
 
 

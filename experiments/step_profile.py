@@ -91,24 +91,33 @@ def trace_times(trace_dir: str) -> dict[str, float]:
     return dict(out)
 
 
+def full_stream_config(cfg, models: Path, batch_size: int, seed: int):
+    """The crop stream of ``cfg``'s objects and options as after its curriculum, rendered in
+    this process (no workers)."""
+    from sc6d_jax.data import StreamConfig
+    from sc6d_jax.train.loop import stream_fields
+
+    kw = stream_fields(cfg, models, workers=0)
+    kw.pop("curriculum", None)  # the full stream, as after the curriculum
+    kw["models_dir"] = str(kw["models_dir"])
+    return StreamConfig(batch_size=batch_size, seed=seed, **kw)
+
+
 def _setup(a: argparse.Namespace, models: Path):
     import jax
 
-    from sc6d_jax.data import CropStream, StreamConfig, delta_z_range
+    from sc6d_jax.data import CropStream, delta_z_range
     from sc6d_jax.model import init, loss_fn
     from sc6d_jax.train import preset
     from sc6d_jax.train.cli import apply_overrides
-    from sc6d_jax.train.loop import make_optimizer, make_train_step, resolve_z_range, stream_fields
+    from sc6d_jax.train.loop import make_optimizer, make_train_step, resolve_z_range
 
     cfg = preset(a.preset)
     if a.set:
         cfg = apply_overrides(cfg, a.set)
     cfg = cfg.replace(stream=dataclasses.replace(cfg.stream, obj_ids=tuple(a.obj_ids)),
                       model=dataclasses.replace(cfg.model, n_objects=len(a.obj_ids)))
-    kw = stream_fields(cfg, models, workers=0)
-    kw.pop("curriculum", None)  # the full stream, as after the curriculum
-    kw["models_dir"] = str(kw["models_dir"])
-    scfg = StreamConfig(batch_size=cfg.stream.batch_size, seed=0, **kw)
+    scfg = full_stream_config(cfg, models, cfg.stream.batch_size, seed=0)
     z_range = resolve_z_range(cfg, scfg, delta_z_range)
     cfg = cfg.replace(z_range=z_range)
     with CropStream(scfg) as s:
