@@ -58,8 +58,17 @@ def test_probe_of_a_real_run_and_refusals(tmp_path, models, capsys):
     assert 64 < got["crops"] <= 128 and "rot_emb" in printed
     assert cue_probe.main([*args[:4], "--crops", "8"]) == 2
     assert "--crops" in capsys.readouterr().err
-    cfg1 = preset("tiny", steps=1, log_every=1, checkpoint_every=1, val_crops=0)
+    # a run of obj 1 alone (an untrained checkpoint: the refusal reads the run's objects)
+    import jax
+
+    from sc6d_jax.model import init
+    from sc6d_jax.train import save_checkpoint
+
+    cfg1 = preset("tiny")
     cfg1 = cfg1.replace(stream=cfg1.stream.__class__(batch_size=4, obj_ids=(1,)))
-    train(cfg1, models, tmp_path / "one", progress=False, verbose=False, workers=0)
-    assert cue_probe.main(["--run", str(tmp_path / "one"), "--models", str(models)]) == 2
+    one = tmp_path / "one"
+    save_checkpoint(one, 1, init(jax.random.PRNGKey(0), cfg1.model), {}, np.zeros(2, np.uint32), cfg1.to_dict(),
+                    extra_meta={"models_dir": str(models)})
+    (one / "config.json").write_text(json.dumps(cfg1.to_dict()))
+    assert cue_probe.main(["--run", str(one), "--models", str(models)]) == 2
     assert "did not train the dumbbell" in capsys.readouterr().err
