@@ -71,6 +71,13 @@ class ModelConfig:
       along its ray by up to ``1/cos`` of the ray's angle, which the depth code (read off the
       apparent size) has to undo; GroupNorm removes such a near-constant input from the
       features. Needs ``use_pe``; use with ``pe_turns`` (else the ray disagrees with turned crops).
+    - xy_vote: the projected centre's offset delta_xy read off votes instead of the xy head's
+      one regression from pooled features: every cell of the decoder's S/4 map predicts the
+      offset from itself to the projected centre and a confidence, and delta_xy is the average
+      of the cells' votes (cell position + offset) weighted by the softmax of confidence plus
+      log of the predicted visible mask (``_network.vote_delta_xy``). A centre is a position,
+      which a map finds where it is; pooled features must carry it as a number. Train with
+      ``loss.w_xy_vote`` (each cell's offset against the ground truth, on the visible mask).
     - z_scale_input: give the depth head the crop's angular size (the log of the side its PE map
       spans, ``_pose_decoder.scale_features``). The depth code is nearly scale-invariant, but not
       at close range: the near side of an object looks larger than the far side, so the box (and
@@ -160,6 +167,7 @@ class ModelConfig:
     pe_turns: bool = False
     z_ray_input: bool = False
     z_scale_input: bool = False
+    xy_vote: bool = False
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:

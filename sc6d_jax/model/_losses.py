@@ -24,7 +24,7 @@ from sc6d_jax.geometry import (
 )
 
 from ._config import ModelConfig
-from ._network import apply, rot_cls_grid, with_z_prior
+from ._network import apply, rot_cls_grid, vote_grid, with_z_prior
 from ._rotation import rotation_logits, z_prior_logits
 
 Z_MODES = ("regression", "classification", "expectation")
@@ -110,6 +110,10 @@ class LossConfig:
     - w_dense: weight of the dense geometry loss (needs ``ModelConfig.dense_head`` and the
       stream's ``dense`` / ``dense_w`` targets): L1 of the normal and the relative depth over
       the visible blocks, weighted by their visible fraction (0 = off, paper).
+    - w_xy_vote: weight of the L1 of each decoder cell's vote (``ModelConfig.xy_vote``: its
+      offset to the projected centre, crop-side units) against the ground truth's, averaged over
+      the cells weighted by the visible mask's fraction in each (0 = off; the aggregated
+      delta_xy keeps its own ``w_xy`` loss).
     - w_dense_xyz: weight of the L1 of the object-frame surface points (``ModelConfig.dense_xyz``
       and the stream's ``dense_xyz`` targets), over the same blocks (0 = off).
     - w_view: weight of the clean-view reconstruction (needs ``ModelConfig.view_head`` and the
@@ -134,6 +138,7 @@ class LossConfig:
     per_sample_negatives: bool = False
     w_rot: float = 1.0
     w_xy: float = 10.0
+    w_xy_vote: float = 0.0
     w_z: float = 1.0
     w_mask: float = 1.0
     mask_downsample: str = "area"
@@ -192,7 +197,7 @@ class LossConfig:
             raise ValueError(f"view_until must be a fraction of the run in (0, 1], got {self.view_until!r}")
         if not 0.0 < self.view_top <= 1.0:
             raise ValueError(f"view_top must be a fraction in (0, 1], got {self.view_top!r}")
-        for name in ("w_rot", "w_xy", "w_z", "w_mask", "w_z_l1", "w_dense", "w_dense_xyz", "w_rot_readout", "w_rot_cls",
+        for name in ("w_rot", "w_xy", "w_xy_vote", "w_z", "w_mask", "w_z_l1", "w_dense", "w_dense_xyz", "w_rot_readout", "w_rot_cls",
                      "w_view", "focal_alpha", "focal_gamma", "z_rot_noise_deg"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
@@ -217,6 +222,17 @@ def cross_entropy(logits: jax.Array, labels: jax.Array) -> jax.Array:
     """Mean softmax cross-entropy with integer labels."""
     logp = jnp.take_along_axis(jax.nn.log_softmax(logits, axis=-1), labels[:, None], axis=-1)[:, 0]
     return -jnp.mean(logp)
+
+
+def vote_loss(votes: jax.Array, delta_xy: jax.Array, mask: jax.Array) -> jax.Array:
+    """L1 of the cells' offsets ``votes[..., :2]`` (B,n,n,3) against the ground truth's (the
+    projected centre ``delta_xy`` (B,2) minus each cell's centre, ``vote_grid``), averaged over the
+    cells weighted by ``mask`` (B,n,n), the visible fraction of each; a crop without visible cells
+    counts 0."""
+    want = delta_xy[:, None, None, :] - vote_grid(votes.shape[1])[None]
+    err = jnp.sum(jnp.abs(votes[..., :2].astype(jnp.float32) - want), axis=-1)
+    m = mask.astype(jnp.float32)
+    return jnp.mean(jnp.sum(err * m, axis=(1, 2)) / jnp.maximum(jnp.sum(m, axis=(1, 2)), 1e-6))
 
 
 def bce_with_logits(logits: jax.Array, targets: jax.Array) -> jax.Array:
@@ -412,6 +428,8 @@ def loss_fn(
         _check_dense(mcfg, lcfg, batch)
     if lcfg.w_rot_cls > 0 and not mcfg.rot_cls:
         raise ValueError("loss.w_rot_cls > 0 needs a model with model.rot_cls > 0 (its grid size)")
+    if lcfg.w_xy_vote > 0 and not mcfg.xy_vote:
+        raise ValueError("loss.w_xy_vote > 0 needs a model with model.xy_vote=True")
     if lcfg.w_rot_readout > 0 and not mcfg.rot_readout:
         raise ValueError("loss.w_rot_readout > 0 needs a model with model.rot_readout=True")
     if lcfg.w_view > 0:
@@ -481,6 +499,9 @@ def loss_fn(
     if lcfg.w_dense > 0:
         extra["loss_dense"] = dense_loss(out, batch, slice(0, 4))
         loss = loss + lcfg.w_dense * extra["loss_dense"]
+    if lcfg.w_xy_vote > 0:
+        extra["loss_xy_vote"] = vote_loss(out["xy_votes"], dxy, target)
+        loss = loss + lcfg.w_xy_vote * extra["loss_xy_vote"]
     if lcfg.w_dense_xyz > 0:
         extra["loss_dense_xyz"] = dense_loss(out, batch, slice(4, 7))
         loss = loss + lcfg.w_dense_xyz * extra["loss_dense_xyz"]

@@ -10,7 +10,7 @@ import numpy as np
 
 from ._config import ModelConfig
 from ._layers import dense, init_dense, make_rng, split
-from ._encoder import backbone, decoder, init_backbone, init_decoder
+from ._encoder import backbone, conv_gn_relu, decoder, init_backbone, init_conv_gn, init_decoder
 from ._pose_decoder import block_map_size, head_map_size, init_pose_decoder, pose_decoder
 from ._rotation import _init_stacked_dense, _l2n, init_rotation_head, init_z_prior, z_prior_logits
 
@@ -58,7 +58,32 @@ def init(key: jax.Array, cfg: ModelConfig) -> dict:
             params["view_head"] = _init_stacked_dense(split(rng, 1)[0], cfg.n_objects, c, out, scale=0.01)
         else:
             params["view_head"] = init_dense(split(rng, 1)[0], c, out, scale=0.01)
+    if cfg.xy_vote:  # the next child
+        kc, ko = split(split(rng, 1)[0], 2)
+        params["xy_vote"] = {"conv": init_conv_gn(kc, 3, cfg.feat_dim, cfg.feat_dim),
+                             "out": init_dense(ko, cfg.feat_dim, 3, scale=0.01)}
     return jax.tree.map(jnp.asarray, params)
+
+
+def vote_grid(n: int) -> jax.Array:
+    """(n, n, 2) the centres of an n x n map's cells in crop-side units about the crop centre
+    (x right, y down; delta_xy's units): cell k covers crop pixels [kS/n, (k+1)S/n) of the S-pixel
+    crop that covers [-0.5, S - 0.5] (sc6d_jax.geometry crop convention), so its centre lies at
+    (k + 0.5) / n - 0.5 of the side."""
+    c = (jnp.arange(n, dtype=jnp.float32) + 0.5) / n - 0.5
+    return jnp.stack(jnp.meshgrid(c, c, indexing="xy"), axis=-1)
+
+
+def vote_delta_xy(votes: jax.Array, mask_logit: jax.Array) -> jax.Array:
+    """(B, 2) delta_xy from per-cell votes (B,n,n,3) (offset x, y from the cell to the projected
+    centre in crop-side units, confidence logit): the votes' positions averaged with weights
+    softmax(confidence + log sigmoid(mask)) over the cells; the mask only weighs (no gradient
+    reaches it from here)."""
+    b, n = votes.shape[0], votes.shape[1]
+    logm = jax.nn.log_sigmoid(jax.lax.stop_gradient(mask_logit.astype(jnp.float32)))
+    w = jax.nn.softmax((votes[..., 2].astype(jnp.float32) + logm).reshape(b, -1), axis=-1)
+    pos = (vote_grid(n)[None] + votes[..., :2].astype(jnp.float32)).reshape(b, -1, 2)
+    return jnp.einsum("bk,bkc->bc", w, pos)
 
 
 @functools.lru_cache(maxsize=8)
@@ -127,6 +152,9 @@ def apply(
     extra = {}
     if cfg.dense_head:
         extra["dense"] = dense(feat, params["dense_head"]["w"], params["dense_head"]["b"])
+    if cfg.xy_vote:
+        v = params["xy_vote"]
+        extra["xy_votes"] = dense(conv_gn_relu(feat, v["conv"], cfg), v["out"]["w"], v["out"]["b"])
     if cfg.mask_gate:
         gate = jax.nn.sigmoid(mask_logit)
         if teacher_gate is not None:
@@ -155,6 +183,8 @@ def apply(
     if cfg.rot_readout:
         ro = params["rot_readout"]
         extra["rot_6d"] = jnp.einsum("be,bes->bs", emb, ro["w"][obj_idx]) + ro["b"][obj_idx]
+    if cfg.xy_vote:
+        dxy = vote_delta_xy(extra["xy_votes"], mask_logit)
     return {"rot_emb": emb, "delta_xy": dxy, "z_logits": zl, "mask_logit": mask_logit, **extra}
 
 
