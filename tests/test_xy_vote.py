@@ -99,3 +99,21 @@ def test_vote_head_trains_through_the_loss_and_checks_its_config():
     with pytest.raises(ValueError, match="xy_vote=True"):
         off = model.ModelConfig(**{**mcfg.__dict__, "xy_vote": False})
         model.loss_fn(model.init(jax.random.PRNGKey(0), off), off, lcfg, batch, key, (1.0, 2.0))
+
+
+def test_votes_from_the_dilated_block_are_weighted_by_the_mask_over_their_cells():
+    mcfg = model.ModelConfig(n_objects=1, crop_size=32, backbone="tiny", width=8, decoder_width=8, feat_dim=8,
+                             pose_width=8, head_hidden=16, so3_hidden=16, n_z_bins=8, conv_impl="lax",
+                             gn_groups=4, pose_downsample=1, xy_vote=True, xy_vote_from="block")
+    params = model.init(jax.random.PRNGKey(0), mcfg)
+    out = model.apply(params, mcfg, jnp.zeros((2, 32, 32, 3)), jnp.zeros((2, 32, 32, 2)), jnp.zeros(2, jnp.int32))
+    assert out["xy_votes"].shape == (2, 4, 4, 3) and out["delta_xy"].shape == (2, 2)
+    # a mask on one 2x2 group of the 8x8 mask map alone: its 4x4 vote cell decides
+    n, d = 4, np.array([[0.1, -0.2]], np.float32)
+    votes = np.concatenate([np.zeros((1, n, n, 2), np.float32), np.zeros((1, n, n, 1), np.float32)], -1)
+    votes[0, 1, 2, :2] = d[0] - np.asarray(vote_grid(n))[1, 2]
+    mask_logit = np.full((1, 8, 8), -40.0, np.float32)
+    mask_logit[0, 2:4, 4:6] = 40.0
+    np.testing.assert_allclose(vote_delta_xy(jnp.asarray(votes), jnp.asarray(mask_logit)), d, atol=1e-5)
+    with pytest.raises(ValueError, match="xy_vote_from"):
+        model.ModelConfig(n_objects=1, xy_vote=True, xy_vote_from="pooled")

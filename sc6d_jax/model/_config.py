@@ -78,6 +78,9 @@ class ModelConfig:
       log of the predicted visible mask (``_network.vote_delta_xy``). A centre is a position,
       which a map finds where it is; pooled features must carry it as a number. Train with
       ``loss.w_xy_vote`` (each cell's offset against the ground truth, on the visible mask).
+    - xy_vote_from: which map votes: "feat" (the decoder's S/4 features, before the mask gate)
+      or "block" (the pose decoder's dilated block, whose dilations and pooled branch span the
+      whole crop; its cells are weighted by the mask averaged over them).
     - z_scale_input: give the depth head the crop's angular size (the log of the side its PE map
       spans, ``_pose_decoder.scale_features``). The depth code is nearly scale-invariant, but not
       at close range: the near side of an object looks larger than the far side, so the box (and
@@ -168,6 +171,7 @@ class ModelConfig:
     z_ray_input: bool = False
     z_scale_input: bool = False
     xy_vote: bool = False
+    xy_vote_from: str = "feat"
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:
@@ -204,6 +208,8 @@ class ModelConfig:
             raise ValueError(f"view_from must be 'hidden', 'map' or 'block', got {self.view_from!r}")
         if self.view_per_object and not self.view_head:
             raise ValueError("view_per_object chooses the view decoder per object: it needs view_head > 0")
+        if self.xy_vote_from not in ("feat", "block"):
+            raise ValueError(f"xy_vote_from must be 'feat' or 'block', got {self.xy_vote_from!r}")
         if self.dense_xyz and not self.dense_head:
             raise ValueError("dense_xyz adds channels to the dense head: it needs dense_head=True")
 

@@ -500,7 +500,9 @@ def loss_fn(
         extra["loss_dense"] = dense_loss(out, batch, slice(0, 4))
         loss = loss + lcfg.w_dense * extra["loss_dense"]
     if lcfg.w_xy_vote > 0:
-        extra["loss_xy_vote"] = vote_loss(out["xy_votes"], dxy, target)
+        f = mcfg.crop_size // out["xy_votes"].shape[1]
+        extra["loss_xy_vote"] = vote_loss(out["xy_votes"], dxy, target if f == 4 else
+                                          downsample_mask(jnp.asarray(batch["mask_visib"]), f, "area"))
         loss = loss + lcfg.w_xy_vote * extra["loss_xy_vote"]
     if lcfg.w_dense_xyz > 0:
         extra["loss_dense_xyz"] = dense_loss(out, batch, slice(4, 7))

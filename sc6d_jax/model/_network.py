@@ -60,8 +60,8 @@ def init(key: jax.Array, cfg: ModelConfig) -> dict:
             params["view_head"] = init_dense(split(rng, 1)[0], c, out, scale=0.01)
     if cfg.xy_vote:  # the next child
         kc, ko = split(split(rng, 1)[0], 2)
-        params["xy_vote"] = {"conv": init_conv_gn(kc, 3, cfg.feat_dim, cfg.feat_dim),
-                             "out": init_dense(ko, cfg.feat_dim, 3, scale=0.01)}
+        cin, c = (cfg.feat_dim, cfg.feat_dim) if cfg.xy_vote_from == "feat" else (8 * cfg.pose_width, cfg.pose_width)
+        params["xy_vote"] = {"conv": init_conv_gn(kc, 3, cin, c), "out": init_dense(ko, c, 3, scale=0.01)}
     return jax.tree.map(jnp.asarray, params)
 
 
@@ -77,10 +77,14 @@ def vote_grid(n: int) -> jax.Array:
 def vote_delta_xy(votes: jax.Array, mask_logit: jax.Array) -> jax.Array:
     """(B, 2) delta_xy from per-cell votes (B,n,n,3) (offset x, y from the cell to the projected
     centre in crop-side units, confidence logit): the votes' positions averaged with weights
-    softmax(confidence + log sigmoid(mask)) over the cells; the mask only weighs (no gradient
-    reaches it from here)."""
+    softmax(confidence + log mask) over the cells, mask = sigmoid(mask_logit) (B,m,m) averaged
+    over the m/n x m/n cells of each vote; the mask only weighs (no gradient reaches it from here)."""
     b, n = votes.shape[0], votes.shape[1]
-    logm = jax.nn.log_sigmoid(jax.lax.stop_gradient(mask_logit.astype(jnp.float32)))
+    m = jax.nn.sigmoid(jax.lax.stop_gradient(mask_logit.astype(jnp.float32)))
+    f = m.shape[1] // n
+    if f > 1:
+        m = m.reshape(b, n, f, n, f).mean(axis=(2, 4))
+    logm = jnp.log(m + 1e-6)
     w = jax.nn.softmax((votes[..., 2].astype(jnp.float32) + logm).reshape(b, -1), axis=-1)
     pos = (vote_grid(n)[None] + votes[..., :2].astype(jnp.float32)).reshape(b, -1, 2)
     return jnp.einsum("bk,bkc->bc", w, pos)
@@ -152,7 +156,7 @@ def apply(
     extra = {}
     if cfg.dense_head:
         extra["dense"] = dense(feat, params["dense_head"]["w"], params["dense_head"]["b"])
-    if cfg.xy_vote:
+    if cfg.xy_vote and cfg.xy_vote_from == "feat":
         v = params["xy_vote"]
         extra["xy_votes"] = dense(conv_gn_relu(feat, v["conv"], cfg), v["out"]["w"], v["out"]["b"])
     if cfg.mask_gate:
@@ -184,6 +188,9 @@ def apply(
         ro = params["rot_readout"]
         extra["rot_6d"] = jnp.einsum("be,bes->bs", emb, ro["w"][obj_idx]) + ro["b"][obj_idx]
     if cfg.xy_vote:
+        if cfg.xy_vote_from == "block":
+            v = params["xy_vote"]
+            extra["xy_votes"] = dense(conv_gn_relu(block, v["conv"], cfg), v["out"]["w"], v["out"]["b"])
         dxy = vote_delta_xy(extra["xy_votes"], mask_logit)
     return {"rot_emb": emb, "delta_xy": dxy, "z_logits": zl, "mask_logit": mask_logit, **extra}
 

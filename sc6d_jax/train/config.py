@@ -552,11 +552,16 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # test AR 0.645 vs 0.646 without TTA, 0.681 vs 0.676 fused: the same, not kept (obj1_scale*).
         # Crops black beyond the image's edges as test crops are (stream.image_border; obj 1, 6,000
         # steps): test AR 0.644 vs 0.646, 0.681 vs 0.676 fused: the same, not kept (obj1_border*).
+        # The projected centre from votes of a map's cells (model.xy_vote, loss.w_xy_vote=10; obj 11, the
+        # pyramid whose centre the hour's model misses by 11.5 px, 3,000 steps): from the S/4 features
+        # 9.0 vs 6.5 px on validation, fused test AR -0.050 +- 0.028; from the dilated block 8.8 px,
+        # -0.043 +- 0.029; loss.w_xy=30: the same (obj11_centre*). Not kept.
         # 28,000 steps: about an hour on 2 cores with one renderer worker (54.6 min with GroupNorm in
         #   one pass; 26,000 took 57.6 before it). All 14 objects: validation 0.470 / 23.4 deg /
         #   2.09 % vs 0.458 / 29.6 / 2.26 % at 26,000 with the old GroupNorm; demo 0.391 without TTA,
         #   0.488 fused (vs 0.381 / 0.466), 390 targets 0.414 / 0.452 (vs 0.391 / 0.441); one seed
-        #   each (cpu_14objects_h1_gn*). The "long" preset is
+        #   each (cpu_14objects_h1_gn*); seed 1: demo 0.412 / 0.478, 390 targets 0.404 / 0.451 (within
+        #   0.01 of seed 0, paired; cpu_14objects_h1_gn_s1*). The "long" preset is
         # the same recipe over 150,000 steps, run in legs (sc6d carry); the shipped builtin is its
         # second run's end (150,000 steps, 317 training minutes; validation flat at 0.60-0.62 AR
         # over its last third).
