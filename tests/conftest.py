@@ -77,3 +77,17 @@ def gt_estimates():
         return ests, ks
 
     return make
+
+
+@pytest.fixture(scope="session")
+def micro_model():
+    """``make(**fields)``: a ModelConfig of one object small enough to compile in seconds (32-pixel
+    crops, width 8), with the given fields set on top."""
+    def make(**fields):
+        from sc6d_jax import model
+
+        base = dict(n_objects=1, crop_size=32, backbone="tiny", width=8, decoder_width=8, feat_dim=8, pose_width=8,
+                    head_hidden=16, so3_hidden=16, n_z_bins=8, conv_impl="lax", gn_groups=4)
+        return model.ModelConfig(**{**base, **fields})
+
+    return make

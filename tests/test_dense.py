@@ -129,10 +129,8 @@ def test_stream_dense_targets_follow_the_crop(models):
         StreamConfig(str(models), dense_xyz=True)
 
 
-def test_dense_loss_trains_the_head_and_checks_its_inputs():
-    mcfg = model.ModelConfig(n_objects=1, crop_size=32, backbone="tiny", width=8, decoder_width=8, feat_dim=8,
-                             pose_width=8, head_hidden=16, so3_hidden=16, n_z_bins=8, conv_impl="lax",
-                             gn_groups=4, dense_head=True)
+def test_dense_loss_trains_the_head_and_checks_its_inputs(micro_model):
+    mcfg = micro_model(dense_head=True)
     lcfg = model.LossConfig(n_negatives=16, rebase_negatives=False, w_dense=1.0)
     params = model.init(jax.random.PRNGKey(0), mcfg)
     rng = np.random.default_rng(0)
@@ -180,16 +178,16 @@ def test_dense_loss_trains_the_head_and_checks_its_inputs():
         model.ModelConfig(n_objects=1, dense_xyz=True)
 
 
-def test_optional_heads_leave_the_other_parameters_unchanged():
-    """dense_head adds its own parameters without changing how the others are drawn, and
-    so3_pe_freqs widens only the SO(3) encoder's input layer."""
-    mcfg = model.ModelConfig(n_objects=2, crop_size=32, backbone="tiny", width=8, decoder_width=8, feat_dim=8,
-                             pose_width=8, head_hidden=16, so3_hidden=16, n_z_bins=8, conv_impl="lax", gn_groups=4)
+def test_optional_heads_leave_the_other_parameters_unchanged(micro_model):
+    """dense_head and xy_vote add their own parameters without changing how the others are
+    drawn, and so3_pe_freqs widens only the SO(3) encoder's input layer."""
+    mcfg = micro_model(n_objects=2)
     a = model.init(jax.random.PRNGKey(3), mcfg)
-    b = model.init(jax.random.PRNGKey(3), dataclasses.replace(mcfg, dense_head=True))
-    assert set(b) == set(a) | {"dense_head"}
-    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves({k: b[k] for k in a})):
-        np.testing.assert_array_equal(x, y)
+    for field, name in (("dense_head", "dense_head"), ("xy_vote", "xy_vote")):
+        b = model.init(jax.random.PRNGKey(3), dataclasses.replace(mcfg, **{field: True}))
+        assert set(b) == set(a) | {name}
+        for x, y in zip(jax.tree.leaves(a), jax.tree.leaves({k: b[k] for k in a})):
+            np.testing.assert_array_equal(x, y)
     c = model.init(jax.random.PRNGKey(3), dataclasses.replace(mcfg, so3_pe_freqs=3))
     assert c["rot_head"]["fc1"]["w"].shape == (9 * 7, 16)
     R = np.asarray(G.rot_z(0.3))[None].repeat(2, 0)
@@ -197,12 +195,10 @@ def test_optional_heads_leave_the_other_parameters_unchanged():
     np.testing.assert_allclose(np.linalg.norm(np.asarray(e), axis=-1), 1.0, atol=1e-5)
 
 
-def test_teacher_gate_replaces_the_predicted_mask_where_on():
+def test_teacher_gate_replaces_the_predicted_mask_where_on(micro_model):
     """apply's teacher gate: off = the predicted gate; on with the predicted gate's own values =
     the same outputs; on with another mask = other outputs, for those samples only."""
-    mcfg = model.ModelConfig(n_objects=1, crop_size=32, backbone="tiny", width=8, decoder_width=8, feat_dim=8,
-                             pose_width=8, head_hidden=16, so3_hidden=16, n_z_bins=8, conv_impl="lax",
-                             gn_groups=4, mask_gate=True)
+    mcfg = micro_model(mask_gate=True)
     params = model.init(jax.random.PRNGKey(0), mcfg)
     rng = np.random.default_rng(1)
     rgb = jnp.asarray(rng.integers(0, 256, (2, 32, 32, 3)).astype(np.uint8))

@@ -70,10 +70,8 @@ def test_votes_decode_loss_and_quarter_turns():
         np.testing.assert_allclose(got, want @ Rz.T, atol=1e-5)
 
 
-def test_vote_head_trains_through_the_loss_and_checks_its_config():
-    mcfg = model.ModelConfig(n_objects=1, crop_size=32, backbone="tiny", width=8, decoder_width=8, feat_dim=8,
-                             pose_width=8, head_hidden=16, so3_hidden=16, n_z_bins=8, conv_impl="lax",
-                             gn_groups=4, xy_vote=True)
+def test_vote_head_trains_through_the_loss_and_checks_its_config(micro_model):
+    mcfg = micro_model(xy_vote=True)
     lcfg = model.LossConfig(n_negatives=16, rebase_negatives=False, w_xy_vote=3.0)
     params = model.init(jax.random.PRNGKey(0), mcfg)
     assert set(params["xy_vote"]) == {"conv", "out"}
@@ -97,16 +95,15 @@ def test_vote_head_trains_through_the_loss_and_checks_its_config():
     # delta_xy is the votes' (the xy head is not read: no gradient reaches it)
     assert float(jnp.abs(grads["pose_decoder"]["xy"]["out"]["w"]).sum()) == 0
     with pytest.raises(ValueError, match="xy_vote=True"):
-        off = model.ModelConfig(**{**mcfg.__dict__, "xy_vote": False})
+        off = micro_model()
         model.loss_fn(model.init(jax.random.PRNGKey(0), off), off, lcfg, batch, key, (1.0, 2.0))
 
 
-def test_votes_from_the_dilated_block_are_weighted_by_the_mask_over_their_cells():
-    mcfg = model.ModelConfig(n_objects=1, crop_size=32, backbone="tiny", width=8, decoder_width=8, feat_dim=8,
-                             pose_width=8, head_hidden=16, so3_hidden=16, n_z_bins=8, conv_impl="lax",
-                             gn_groups=4, pose_downsample=1, xy_vote=True, xy_vote_from="block")
+def test_votes_from_the_dilated_block_are_weighted_by_the_mask_over_their_cells(micro_model):
+    mcfg = micro_model(pose_downsample=1, xy_vote=True, xy_vote_from="block")
     params = model.init(jax.random.PRNGKey(0), mcfg)
-    out = model.apply(params, mcfg, jnp.zeros((2, 32, 32, 3)), jnp.zeros((2, 32, 32, 2)), jnp.zeros(2, jnp.int32))
+    out = jax.jit(lambda p: model.apply(p, mcfg, jnp.zeros((2, 32, 32, 3)), jnp.zeros((2, 32, 32, 2)),
+                                        jnp.zeros(2, jnp.int32)))(params)
     assert out["xy_votes"].shape == (2, 4, 4, 3) and out["delta_xy"].shape == (2, 2)
     # a mask on one 2x2 group of the 8x8 mask map alone: its 4x4 vote cell decides
     n, d = 4, np.array([[0.1, -0.2]], np.float32)
