@@ -114,3 +114,39 @@ def test_votes_from_the_dilated_block_are_weighted_by_the_mask_over_their_cells(
     np.testing.assert_allclose(vote_delta_xy(jnp.asarray(votes), jnp.asarray(mask_logit)), d, atol=1e-5)
     with pytest.raises(ValueError, match="xy_vote_from"):
         model.ModelConfig(n_objects=1, xy_vote=True, xy_vote_from="pooled")
+
+
+def test_centre_offset_from_the_rotation_adds_to_delta_xy_and_trains(micro_model):
+    """model.xy_rot: a per-object MLP of the allocentric rotation (9 -> h -> h -> 2), zero at
+    first, added to delta_xy wherever the rotation's priors are applied (training: the ground
+    truth; inference and validation: the matched rotation); the centre's loss trains it."""
+    from sc6d_jax.model import with_z_prior
+    from sc6d_jax.model._rotation import z_prior_logits
+
+    mcfg = micro_model(xy_rot=True)
+    p0, p = model.init(jax.random.PRNGKey(0), micro_model()), model.init(jax.random.PRNGKey(0), mcfg)
+    assert set(p) == set(p0) | {"xy_rot"} and p["xy_rot"]["out"]["w"].shape == (1, 16, 2)
+    for a, b in zip(jax.tree.leaves(p0), jax.tree.leaves({k: v for k, v in p.items() if k != "xy_rot"})):
+        np.testing.assert_array_equal(a, b)
+    rng = np.random.default_rng(2)
+    out = {"delta_xy": jnp.asarray(rng.normal(size=(2, 2)).astype(np.float32)), "z_logits": jnp.zeros((2, 8))}
+    R = jnp.asarray(np.stack([np.eye(3), np.diag([1.0, -1.0, -1.0])]).astype(np.float32))
+    obj = jnp.zeros((2,), jnp.int32)
+    np.testing.assert_array_equal(with_z_prior(p, mcfg, out, R, obj)["delta_xy"], out["delta_xy"])  # zero at first
+    p = {**p, "xy_rot": jax.tree.map(lambda a: jnp.asarray(rng.normal(size=a.shape).astype(np.float32) * 0.3), p["xy_rot"])}
+    got = with_z_prior(p, mcfg, out, R, obj)
+    np.testing.assert_allclose(got["delta_xy"], out["delta_xy"] + z_prior_logits(p["xy_rot"], R, obj), rtol=1e-6)
+    np.testing.assert_array_equal(got["z_logits"], out["z_logits"])  # no depth prior without z_rot
+    b = 2
+    batch = {
+        "rgb": rng.integers(0, 256, (b, 32, 32, 3)).astype(np.uint8),
+        "pe": rng.normal(size=(b, 32, 32, 2)).astype(np.float32),
+        "mask_visib": np.ones((b, 32, 32), np.uint8),
+        "R_allo": np.asarray(R),
+        "delta_xy": np.array([[0.1, -0.1], [0.0, 0.2]], np.float32),
+        "delta_z": np.full((b,), 1.5, np.float32),
+        "obj_idx": np.zeros((b,), np.int32),
+    }
+    lcfg = model.LossConfig(n_negatives=16, rebase_negatives=False)
+    grads = jax.jit(jax.grad(lambda q: model.loss_fn(q, mcfg, lcfg, batch, jax.random.PRNGKey(1), (1.0, 2.0))[0]))(p)
+    assert float(jnp.abs(grads["xy_rot"]["out"]["w"]).sum()) > 0

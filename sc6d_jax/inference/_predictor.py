@@ -166,13 +166,13 @@ def predict_crops(
     out = apply(params, mcfg, rgb_in, pe_in if mcfg.use_pe else None, obj_in)
     emb = out["rot_emb"].astype(f32)
     K_in = jnp.concatenate([K] * n_copies, axis=0)
-    dxy = out["delta_xy"].astype(f32).reshape(n_copies, B, 2)
     if refine and mcfg.rot_head == "ipdf":
         raise ValueError("refine needs the SO(3) encoder (rot_head='so3'); this model has an Implicit-PDF head")
     k_match = max(top_k, tta_candidates) if fuse else top_k
     m = match_library(params["rot_head"], mcfg.rot_head, emb, lib_blocks, n_valid, k_match, tau, True, obj_in)
     # each copy's depth with its own matched rotation (in the copy's frame) as the depth prior's input
-    out = with_z_prior(params, mcfg, out, lib_R[m.index[:, 0]], obj_in)
+    out = with_z_prior(params, mcfg, out, lib_R[m.index[:, 0]], obj_in)  # and the centre's offset
+    dxy = out["delta_xy"].astype(f32).reshape(n_copies, B, 2)
     dz = _z_decode(out, lcfg, z_range, K_in).astype(f32).reshape(n_copies, B)
     idx = m.index.reshape(n_copies, B, k_match)
     score = m.score.reshape(n_copies, B, k_match)

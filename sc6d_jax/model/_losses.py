@@ -92,7 +92,7 @@ class LossConfig:
     - w_rot_cls: weight of the cross-entropy of the model's rotation classifier
       (``ModelConfig.rot_cls``) against the grid rotation nearest to the allocentric ground truth
       (0 = off, paper).
-    - z_rot_noise_deg: with ``ModelConfig.z_rot``, the rotation the depth prior is fed in
+    - z_rot_noise_deg: with ``ModelConfig.z_rot`` (or ``xy_rot``), the rotation the priors are fed in
       training is the ground truth turned about a random axis by an angle uniform in
       [0, z_rot_noise_deg] (0 = the ground truth itself): inference feeds the matched rotation,
       which is off by some degrees.
@@ -454,7 +454,6 @@ def loss_fn(
     loss_rot = info_nce(logits)
 
     dxy = jnp.asarray(batch["delta_xy"], jnp.float32)
-    loss_xy = jnp.mean(jnp.sum(jnp.abs(out["delta_xy"] - dxy), axis=-1))
 
     dz = jnp.asarray(batch["delta_z"], jnp.float32)
     code = z_code(dz, batch.get("K"), lcfg)
@@ -481,15 +480,17 @@ def loss_fn(
         return lz, pred
 
     extra = {}
-    if mcfg.z_rot:
+    if mcfg.z_rot or mcfg.xy_rot:
         R_z = R_gt
         if lcfg.z_rot_noise_deg > 0:
             R_z = R_gt @ local_rotation_deltas(jax.random.fold_in(key, 3), (R_gt.shape[0],), 0.0, lcfg.z_rot_noise_deg)
-        if lcfg.z_rot_separate:  # the prior on its own, the image head as without it
+        if mcfg.z_rot and lcfg.z_rot_separate:  # the depth prior on its own, the image head as without it
             extra["loss_z_prior"] = depth_loss({"z_logits": z_prior_logits(params["z_rot"], R_z, obj_idx)})[0]
+            out = with_z_prior(params, dataclasses.replace(mcfg, z_rot=False), out, R_z, obj_idx)
         else:
             out = with_z_prior(params, mcfg, out, R_z, obj_idx)
     loss_z, code_pred = depth_loss(out)
+    loss_xy = jnp.mean(jnp.sum(jnp.abs(out["delta_xy"] - dxy), axis=-1))
 
     loss_mask = bce_with_logits(out["mask_logit"], target)
 

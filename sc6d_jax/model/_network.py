@@ -58,6 +58,8 @@ def init(key: jax.Array, cfg: ModelConfig) -> dict:
             params["view_head"] = _init_stacked_dense(split(rng, 1)[0], cfg.n_objects, c, out, scale=0.01)
         else:
             params["view_head"] = init_dense(split(rng, 1)[0], c, out, scale=0.01)
+    if cfg.xy_rot:  # the next child
+        params["xy_rot"] = init_z_prior(split(rng, 1)[0], cfg, out_dim=2)
     if cfg.xy_vote:  # the next child
         kc, ko = split(split(rng, 1)[0], 2)
         cin, c = (cfg.feat_dim, cfg.feat_dim) if cfg.xy_vote_from == "feat" else (8 * cfg.pose_width, cfg.pose_width)
@@ -196,12 +198,18 @@ def apply(
 
 
 def with_z_prior(params: dict, cfg: ModelConfig, out: dict, R_allo: jax.Array, obj_idx: jax.Array) -> dict:
-    """``out`` with the rotation's depth prior added to its z logits (``cfg.z_rot``; unchanged
-    without it). R_allo (B,3,3): the allocentric rotation each crop is decoded with (the ground
-    truth in training, the matched rotation at inference), in the crop's own frame."""
-    if not cfg.z_rot:
+    """``out`` with the rotation's priors: the depth prior added to its z logits (``cfg.z_rot``)
+    and the centre's offset added to its delta_xy (``cfg.xy_rot``); unchanged without them.
+    R_allo (B,3,3): the allocentric rotation each crop is decoded with (the ground truth in
+    training, the matched rotation at inference), in the crop's own frame."""
+    if not (cfg.z_rot or cfg.xy_rot):
         return out
-    return {**out, "z_logits": out["z_logits"] + z_prior_logits(params["z_rot"], R_allo, obj_idx)}
+    out = dict(out)
+    if cfg.z_rot:
+        out["z_logits"] = out["z_logits"] + z_prior_logits(params["z_rot"], R_allo, obj_idx)
+    if cfg.xy_rot:
+        out["delta_xy"] = out["delta_xy"] + z_prior_logits(params["xy_rot"], R_allo, obj_idx)
+    return out
 
 
 def count_params(params: dict) -> int:

@@ -64,12 +64,12 @@ def init_rotation_head(key: np.random.Generator, cfg: ModelConfig) -> dict:
     }
 
 
-def init_z_prior(key: np.random.Generator, cfg: ModelConfig) -> dict:
-    """Per-object MLP 9 -> head_hidden -> head_hidden -> n_z_bins; the output layer starts at
-    zero, so a fresh prior adds nothing to the image's z logits."""
+def init_z_prior(key: np.random.Generator, cfg: ModelConfig, out_dim: int | None = None) -> dict:
+    """Per-object MLP 9 -> head_hidden -> head_hidden -> out_dim (default n_z_bins); the output
+    layer starts at zero, so a fresh prior adds nothing to what it is added to."""
     k1, k2, k3 = split(key, 3)
     n, h = cfg.n_objects, cfg.head_hidden
-    out = _init_stacked_dense(k3, n, h, cfg.n_z_bins, scale=1.0)
+    out = _init_stacked_dense(k3, n, h, cfg.n_z_bins if out_dim is None else out_dim, scale=1.0)
     return {"fc1": _init_stacked_dense(k1, n, 9, h), "fc2": _init_stacked_dense(k2, n, h, h),
             "out": {"w": np.zeros_like(out["w"]), "b": out["b"]}}
 

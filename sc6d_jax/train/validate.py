@@ -119,7 +119,8 @@ class Validator:
                           obj_idx)
         best = m.index[:, 0]
         R_allo = self.lib_R[best]
-        dz = decode_delta_z(with_z_prior(params, mcfg, out, R_allo, obj_idx), cfg.loss, cfg.z_range, K)
+        out = with_z_prior(params, mcfg, out, R_allo, obj_idx)  # the rotation's priors (depth, centre)
+        dz = decode_delta_z(out, cfg.loss, cfg.z_range, K)
         t = decode_translation(out["delta_xy"], dz, K, center, side, mcfg.crop_size)
         return {"R": allocentric_to_egocentric(R_allo, t), "t": t}
 
