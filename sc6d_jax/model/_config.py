@@ -78,11 +78,12 @@ class ModelConfig:
       log of the predicted visible mask (``_network.vote_delta_xy``). A centre is a position,
       which a map finds where it is; pooled features must carry it as a number. Train with
       ``loss.w_xy_vote`` (each cell's offset against the ground truth, on the visible mask).
+      Measured on obj 11: worse than the regression (README "The projected centre read off votes").
     - xy_rot: a per-object MLP of the allocentric rotation (the ground truth, turned by
       ``loss.z_rot_noise_deg``, in training; the matched rotation at inference) adds an offset to
       delta_xy: where the projected centre lies in the box is a function of the rotation (the
       pyramid's origin halfway up its axis), which the xy head shrinks towards the silhouette's
-      centre (README "The projected centre read off votes").
+      centre. Measured: obj 11 better, obj 1 worse (README "The centre's offset from the rotation").
     - xy_vote_from: which map votes: "feat" (the decoder's S/4 features, before the mask gate)
       or "block" (the pose decoder's dilated block, whose dilations and pooled branch span the
       whole crop; its cells are weighted by the mask averaged over them).

@@ -555,7 +555,10 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # The projected centre from votes of a map's cells (model.xy_vote, loss.w_xy_vote=10; obj 11, the
         # pyramid whose centre the hour's model misses by 11.5 px, 3,000 steps): from the S/4 features
         # 9.0 vs 6.5 px on validation, fused test AR -0.050 +- 0.028; from the dilated block 8.8 px,
-        # -0.043 +- 0.029; loss.w_xy=30: the same (obj11_centre*). Not kept.
+        # -0.043 +- 0.029; loss.w_xy=30: the same (obj11_centre*). Not kept. The centre's offset from the
+        # matched rotation (model.xy_rot, loss.z_rot_noise_deg=5): obj 11 centre 4.3 vs 6.5 px, validation
+        # +0.027 +- 0.018, fused test +0.017 +- 0.026 (obj11_xyrot*); obj 1, 6,000 steps: validation -0.020
+        # +- 0.013, fused test -0.030 +- 0.013 (obj1_xyrot*). Not kept; 14 objects unmeasured.
         # 28,000 steps: about an hour on 2 cores with one renderer worker (54.6 min with GroupNorm in
         #   one pass; 26,000 took 57.6 before it). All 14 objects: validation 0.470 / 23.4 deg /
         #   2.09 % vs 0.458 / 29.6 / 2.26 % at 26,000 with the old GroupNorm; demo 0.391 without TTA,
