@@ -158,9 +158,7 @@ def apply(
     extra = {}
     if cfg.dense_head:
         extra["dense"] = dense(feat, params["dense_head"]["w"], params["dense_head"]["b"])
-    if cfg.xy_vote and cfg.xy_vote_from == "feat":
-        v = params["xy_vote"]
-        extra["xy_votes"] = dense(conv_gn_relu(feat, v["conv"], cfg), v["out"]["w"], v["out"]["b"])
+    feat_ungated = feat
     if cfg.mask_gate:
         gate = jax.nn.sigmoid(mask_logit)
         if teacher_gate is not None:
@@ -189,10 +187,9 @@ def apply(
     if cfg.rot_readout:
         ro = params["rot_readout"]
         extra["rot_6d"] = jnp.einsum("be,bes->bs", emb, ro["w"][obj_idx]) + ro["b"][obj_idx]
-    if cfg.xy_vote:
-        if cfg.xy_vote_from == "block":
-            v = params["xy_vote"]
-            extra["xy_votes"] = dense(conv_gn_relu(block, v["conv"], cfg), v["out"]["w"], v["out"]["b"])
+    if cfg.xy_vote:  # the decoder's features before the mask gate, or the dilated block
+        v, src = params["xy_vote"], feat_ungated if cfg.xy_vote_from == "feat" else block
+        extra["xy_votes"] = dense(conv_gn_relu(src, v["conv"], cfg), v["out"]["w"], v["out"]["b"])
         dxy = vote_delta_xy(extra["xy_votes"], mask_logit)
     return {"rot_emb": emb, "delta_xy": dxy, "z_logits": zl, "mask_logit": mask_logit, **extra}
 
