@@ -406,6 +406,10 @@ def test_depth_prior_decodes_with_the_matched_rotation(tmp_path, models):
     center, side = np.tile(np.array([[300.0, 200.0]], np.float32), (B, 1)), np.full((B,), 120.0, np.float32)
     out = est.predict_crops(rgb, K, center, side, np.arange(B, dtype=np.int32) % 2)
     split(out["R_allo"][:, 2, 2], out["delta_z"])
+    # fused TTA: every copy's prior reads the fused rotation (turned into the copy's frame, which
+    # keeps R[2,2]), not the copy's own top-1, so the four copies agree and the split holds
+    out = est.predict_crops(rgb, K, center, side, np.arange(B, dtype=np.int32) % 2, tta=True)
+    split(out["R_allo"][:, 2, 2], out["delta_z"])
 
     v = Validator(cfg, models, n=32, lib_size=600, batch=16)
     pred = v.predict(params)
