@@ -558,7 +558,11 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # -0.043 +- 0.029; loss.w_xy=30: the same (obj11_centre*). Not kept. The centre's offset from the
         # matched rotation (model.xy_rot, loss.z_rot_noise_deg=5): obj 11 centre 4.3 vs 6.5 px, validation
         # +0.027 +- 0.018, fused test +0.017 +- 0.026 (obj11_xyrot*); obj 1, 6,000 steps: validation -0.020
-        # +- 0.013, fused test -0.030 +- 0.013 (obj1_xyrot*). Not kept; 14 objects unmeasured.
+        # +- 0.013, fused test -0.030 +- 0.013 (obj1_xyrot*). 14 objects, the hour, two seeds each (baselines
+        # not paired): 390 targets fused 0.467 / 0.469 vs 0.452 / 0.451, demo 0.475 / 0.492 vs 0.488 / 0.478,
+        # validation level (cpu_14objects_h1_xyrot*); obj 1 again, with the prior reading the fused rotation
+        # at inference: test -0.075 +- 0.020 without TTA, -0.044 +- 0.014 fused (obj1_xyrot_fusedprior*).
+        # Not kept: obj 1's loss outweighs the hour's +0.016.
         # 28,000 steps: about an hour on 2 cores with one renderer worker (54.6 min with GroupNorm in
         #   one pass; 26,000 took 57.6 before it). All 14 objects: validation 0.470 / 23.4 deg /
         #   2.09 % vs 0.458 / 29.6 / 2.26 % at 26,000 with the old GroupNorm; demo 0.391 without TTA,
