@@ -562,6 +562,7 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # not paired): 390 targets fused 0.467 / 0.469 vs 0.452 / 0.451, demo 0.475 / 0.492 vs 0.488 / 0.478,
         # validation level (cpu_14objects_h1_xyrot*); obj 1 again, with the prior reading the fused rotation
         # at inference: test -0.075 +- 0.020 without TTA, -0.044 +- 0.014 fused (obj1_xyrot_fusedprior*).
+        # With loss.z_rot_noise_deg=30 obj 1 still loses (-0.027 +- 0.017 / -0.040 +- 0.014; obj1_xyrot_noise30*).
         # Not kept: obj 1's loss outweighs the hour's +0.016.
         # 28,000 steps: about an hour on 2 cores with one renderer worker (54.6 min with GroupNorm in
         #   one pass; 26,000 took 57.6 before it). All 14 objects: validation 0.470 / 23.4 deg /
