@@ -174,10 +174,8 @@ def predict_crops(
         raise ValueError("refine needs the SO(3) encoder (rot_head='so3'); this model has an Implicit-PDF head")
     k_match = max(top_k, tta_candidates) if fuse else top_k
     m = match_library(params["rot_head"], mcfg.rot_head, emb, lib_blocks, n_valid, k_match, tau, True, obj_in)
-    # each copy's depth with its own matched rotation (in the copy's frame) as the depth prior's input
-    out_p = with_z_prior(params, mcfg, out, lib_R[m.index[:, 0]], obj_in)  # and the centre's offset
-    dxy = out_p["delta_xy"].astype(f32).reshape(n_copies, B, 2)
-    dz = _z_decode(out_p, lcfg, z_range, K_in).astype(f32).reshape(n_copies, B)
+    # the rotation the priors (model.z_rot, xy_rot) read, in each copy's frame: the copy's own top-1
+    R_prior = lib_R[m.index[:, 0]]
     idx = m.index.reshape(n_copies, B, k_match)
     score = m.score.reshape(n_copies, B, k_match)
     prob = m.prob.reshape(n_copies, B, k_match)
@@ -189,14 +187,9 @@ def predict_crops(
         # each copy's log normaliser over the library, from its top-1 cosine and probability
         log_z = score[:, :, 0] / tau - jnp.log(jnp.maximum(prob[:, :, 0], 1e-30))
         R_allo_k, score_b, prob_b = _fuse_copies(head, mcfg, emb, lib_R[idx], log_z, tau, obj_idx, top_k, refine)
-        if mcfg.z_rot or mcfg.xy_rot:
-            # the rotation priors read the fused rotation (turned into each copy's frame), the
-            # better estimate, instead of each copy's own top-1
-            redo = jnp.stack([rz90(k) for k in range(n_copies)])
-            R_fused = (redo[:, None] @ R_allo_k[None, :, 0]).reshape(n_copies * B, 3, 3)
-            out_p = with_z_prior(params, mcfg, out, R_fused, obj_in)
-            dxy = out_p["delta_xy"].astype(f32).reshape(n_copies, B, 2)
-            dz = _z_decode(out_p, lcfg, z_range, K_in).astype(f32).reshape(n_copies, B)
+        # fused, the priors read the fused rotation (the better estimate) turned into each copy's frame
+        redo = jnp.swapaxes(undo, -1, -2)
+        R_prior = (redo[:, None] @ R_allo_k[None, :, 0]).reshape(n_copies * B, 3, 3)
     else:
         # the best copy per crop (by top-1 cosine)
         best = jnp.argmax(score[:, :, 0], axis=0) if tta else jnp.zeros((B,), jnp.int32)
@@ -210,6 +203,9 @@ def predict_crops(
             R_copy = R_copy.at[:, 0].set(R1)
             score_b = score_b.at[:, 0].set(c1)
         R_allo_k = undo_b[:, None] @ R_copy  # (B,k,3,3)
+    out = with_z_prior(params, mcfg, out, R_prior, obj_in)  # unchanged without the priors
+    dxy = out["delta_xy"].astype(f32).reshape(n_copies, B, 2)
+    dz = _z_decode(out, lcfg, z_range, K_in).astype(f32).reshape(n_copies, B)
     undo2 = undo[:, :2, :2]  # (C,2,2)
     dxy_mean = jnp.mean(jnp.einsum("cij,cbj->cbi", undo2, dxy), axis=0)
     dz_mean = jnp.mean(dz, axis=0)
