@@ -139,6 +139,22 @@ def test_fused_tta_picks_the_candidate_all_four_copies_score_best(est, scene):
     np.testing.assert_allclose(refined["score"], mean_cos(refined["R_allo"]), atol=1e-4)
 
 
+def test_crops_are_cut_with_the_models_crop_pad(est, scene):
+    """The estimator cuts each crop ``mcfg.crop_pad * max(w, h)`` wide around the box centre,
+    as the model's training stream did (``model.crop_pad``; 1.5 by default)."""
+    import copy
+
+    image, K, boxes, ids = scene
+    _, center, side = est.make_crops(image, boxes, len(boxes))
+    np.testing.assert_allclose(side, 1.5 * boxes[:, 2:].max(axis=1), rtol=1e-5)
+    tight = copy.copy(est)
+    tight.mcfg = dataclasses.replace(est.mcfg, crop_pad=1.2)
+    crops2, center2, side2 = tight.make_crops(image, boxes, len(boxes))
+    np.testing.assert_allclose(side2, 1.2 * boxes[:, 2:].max(axis=1), rtol=1e-5)
+    np.testing.assert_allclose(center2, center)
+    assert crops2.shape[1] == est.mcfg.crop_size
+
+
 @pytest.mark.parametrize(
     "change, match",
     [
@@ -168,7 +184,7 @@ def test_export_round_trip(est, scene, tmp_path):
     image, K, boxes, ids = scene
     path = est.export(tmp_path / "predictor.npz")
     f = load_exported(path)
-    assert f.meta["obj_ids"] == list(OBJ_IDS)
+    assert f.meta["obj_ids"] == list(OBJ_IDS) and f.meta["crop_pad"] == est.mcfg.crop_pad
     crops, center, side = est.make_crops(image, boxes, len(boxes))
     idx = est.obj_index(ids)
     Kb = np.broadcast_to(K, (len(boxes), 3, 3))

@@ -89,6 +89,28 @@ def test_object_weights_reach_the_training_stream_but_not_the_validation_crops(m
             apply_overrides(preset("tiny"), items)
 
 
+def test_crop_pad_reaches_the_training_stream_and_the_validation_crops(models):
+    """``model.crop_pad`` sets how wide the crops are cut around the exact box, for the training
+    stream and the validation crops alike: each crop's side is crop_pad times the box's longer
+    side (1.5, the default, passes nothing: the stream's own default)."""
+    from sc6d_jax.train.cli import apply_overrides
+    from sc6d_jax.train.loop import stream_fields
+    from sc6d_jax.train.validate import Validator
+
+    base = _resolved_tiny(models)
+    tight = apply_overrides(base, ["model.crop_pad=1.2"])
+    assert tight.model.crop_pad == 1.2 and stream_fields(tight, models, 0)["pad"] == 1.2
+    assert "pad" not in stream_fields(base, models, 0)
+    a = Validator(base, models, n=8, lib_size=1000, batch=8)
+    b = Validator(tight, models, n=8, lib_size=1000, batch=8)
+    # the same scenes (poses), cut 1.2 / 1.5 as wide
+    np.testing.assert_allclose(b.data["t"], a.data["t"])
+    np.testing.assert_allclose(b.data["side"] / a.data["side"], 1.2 / 1.5, rtol=1e-5)
+    for bad in ("0.9", "5"):
+        with pytest.raises(ValueError, match="crop_pad"):
+            apply_overrides(base, [f"model.crop_pad={bad}"])
+
+
 def test_validator_matches_each_crop_against_its_own_objects_grid(models):
     """Several objects: the validator's blockwise per-object matching picks, for every crop, the
     grid rotation of highest cosine among its own object's embeddings (a dense reference)."""

@@ -4,7 +4,7 @@
     poses = est.predict(image, K, boxes, obj_ids, tta=False, top_k=1, refine=False, tta_mode="fuse")
 
 Crops are made exactly as the training stream makes them (:mod:`sc6d_jax.geometry`: square
-box of side 1.5 max(w, h) around the box centre, ``warp_crop`` bilinear with zero border, PE
+box of side ``crop_pad`` max(w, h) around the box centre (the model's ``crop_pad``, 1.5 by default), ``warp_crop`` bilinear with zero border, PE
 map from K and T). The box count is padded to the next power of two so that calls with the
 same bucket reuse one compiled predictor. Input is validated before anything is compiled.
 """
@@ -29,7 +29,6 @@ from sc6d_jax.inference._library import (
 )
 from sc6d_jax.inference._predictor import predict_crops
 
-CROP_PAD = 1.5
 #: Rows per library block in the estimator (see Estimator.packed_library).
 ESTIMATOR_BLOCK = 8192
 
@@ -154,7 +153,7 @@ class Estimator:
         """(rgb crops uint8 (n_pad,S,S,3), center (n_pad,2), side (n_pad,)); padding repeats box 0."""
         S = self.mcfg.crop_size
         b = np.concatenate([boxes, np.repeat(boxes[:1], n_pad - len(boxes), axis=0)]).astype(np.float32)
-        center, side = crop_box(b, pad=CROP_PAD)
+        center, side = crop_box(b, pad=self.mcfg.crop_pad)
         T = crop_transform(center, side, S)
         crops = warp_crop(image, np.asarray(T), S, interpolation="linear")
         return crops, np.asarray(center, np.float32), np.asarray(side, np.float32)

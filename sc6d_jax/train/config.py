@@ -564,6 +564,14 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # at inference: test -0.075 +- 0.020 without TTA, -0.044 +- 0.014 fused (obj1_xyrot_fusedprior*).
         # With loss.z_rot_noise_deg=30 obj 1 still loses (-0.027 +- 0.017 / -0.040 +- 0.014; obj1_xyrot_noise30*).
         # Not kept: obj 1's loss outweighs the hour's +0.016.
+        # A tighter crop (model.crop_pad=1.2 instead of the authors' 1.5: the object spans 53 instead of
+        # 43 of the 64 pixels; obj 1, 6,000 steps): ahead early (validation 0.351 vs 0.328 at step 1,000),
+        # level at the end: test 0.663 vs 0.658 without TTA, 0.690 vs 0.692 fused, depth 1.70 vs 2.19 %
+        # fused (obj1_pad12*); the 14 objects' hour: see the README ("A tighter crop").
+        # A batch of 48 in obj 1's 6,000 steps (two seeds): fused test 0.707 / 0.712 vs 0.692 / 0.682
+        # (+0.015 +- 0.011, +0.030 +- 0.011), the obj-1 targets met, but 1.4x the time (10.6-10.7 vs
+        # 6.9-7.8 min here, 14-15 on the earlier machines) and not ahead per minute (obj1_bs48*); it
+        # would hold about 19,000 steps in the hour, which is not yet measured.
         # 28,000 steps: about an hour on 2 cores with one renderer worker (54.6 min with GroupNorm in
         #   one pass; 26,000 took 57.6 before it). All 14 objects: validation 0.470 / 23.4 deg /
         #   2.09 % vs 0.458 / 29.6 / 2.26 % at 26,000 with the old GroupNorm; demo 0.391 without TTA,

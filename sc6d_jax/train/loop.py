@@ -260,6 +260,8 @@ def stream_fields(cfg: TrainConfig, models_dir: str | os.PathLike, workers: int 
         common["view"] = cfg.model.view_head
     if getattr(cfg.model, "pe_turns", False):
         common["pe_turns"] = True
+    if getattr(cfg.model, "crop_pad", 1.5) != 1.5:  # the model's crop padding (the stream's default 1.5)
+        common["pad"] = float(cfg.model.crop_pad)
     for name in PASSED_WHEN_SET:  # stream options, when on
         if getattr(cfg.stream, name):
             common[name] = getattr(cfg.stream, name)
