@@ -407,7 +407,7 @@ def test_depth_prior_from_rotation_adds_to_the_z_logits():
     """model.z_rot adds a per-object MLP of the allocentric rotation (9 -> h -> h -> n_z_bins) to
     the image's z logits; it starts at zero (a fresh prior changes nothing, the other
     parameters are drawn as without it). Its losses: the slow test below."""
-    from sc6d_jax.model import apply, with_z_prior
+    from sc6d_jax.model import apply, with_rotation_priors
 
     mcfg = dataclasses.replace(CFG, z_rot=True)
     p0, p = init(jax.random.key(0), CFG), init(jax.random.key(0), mcfg)
@@ -420,13 +420,13 @@ def test_depth_prior_from_rotation_adds_to_the_z_logits():
     batch = _batch(mcfg)
     out = jax.jit(apply, static_argnums=1)(p, mcfg, batch["rgb"], batch["pe"], batch["obj_idx"])
     R = jnp.asarray(batch["R_allo"])
-    np.testing.assert_array_equal(np.asarray(with_z_prior(p, mcfg, out, R, batch["obj_idx"])["z_logits"]),
+    np.testing.assert_array_equal(np.asarray(with_rotation_priors(p, mcfg, out, R, batch["obj_idx"])["z_logits"]),
                                   np.asarray(out["z_logits"]))
-    assert with_z_prior(p, CFG, out, R, batch["obj_idx"]) is out  # without the option: untouched
+    assert with_rotation_priors(p, CFG, out, R, batch["obj_idx"]) is out  # without the option: untouched
 
     p = _random_z_prior(p)
     zr = jax.tree.map(np.asarray, p["z_rot"])
-    got = np.asarray(with_z_prior(p, mcfg, out, R, batch["obj_idx"])["z_logits"] - out["z_logits"])
+    got = np.asarray(with_rotation_priors(p, mcfg, out, R, batch["obj_idx"])["z_logits"] - out["z_logits"])
     relu = lambda x: np.maximum(x, 0.0)
     for i, o in enumerate(np.asarray(batch["obj_idx"])):
         h = relu(np.asarray(R[i]).reshape(9) @ zr["fc1"]["w"][o] + zr["fc1"]["b"][o])

@@ -120,8 +120,8 @@ def test_centre_offset_from_the_rotation_adds_to_delta_xy_and_trains(micro_model
     """model.xy_rot: a per-object MLP of the allocentric rotation (9 -> h -> h -> 2), zero at
     first, added to delta_xy wherever the rotation's priors are applied (training: the ground
     truth; inference and validation: the matched rotation); the centre's loss trains it."""
-    from sc6d_jax.model import with_z_prior
-    from sc6d_jax.model._rotation import z_prior_logits
+    from sc6d_jax.model import with_rotation_priors
+    from sc6d_jax.model._rotation import rotation_prior_output
 
     mcfg = micro_model(xy_rot=True)
     p0, p = model.init(jax.random.PRNGKey(0), micro_model()), model.init(jax.random.PRNGKey(0), mcfg)
@@ -132,10 +132,10 @@ def test_centre_offset_from_the_rotation_adds_to_delta_xy_and_trains(micro_model
     out = {"delta_xy": jnp.asarray(rng.normal(size=(2, 2)).astype(np.float32)), "z_logits": jnp.zeros((2, 8))}
     R = jnp.asarray(np.stack([np.eye(3), np.diag([1.0, -1.0, -1.0])]).astype(np.float32))
     obj = jnp.zeros((2,), jnp.int32)
-    np.testing.assert_array_equal(with_z_prior(p, mcfg, out, R, obj)["delta_xy"], out["delta_xy"])  # zero at first
+    np.testing.assert_array_equal(with_rotation_priors(p, mcfg, out, R, obj)["delta_xy"], out["delta_xy"])  # zero at first
     p = {**p, "xy_rot": jax.tree.map(lambda a: jnp.asarray(rng.normal(size=a.shape).astype(np.float32) * 0.3), p["xy_rot"])}
-    got = with_z_prior(p, mcfg, out, R, obj)
-    np.testing.assert_allclose(got["delta_xy"], out["delta_xy"] + z_prior_logits(p["xy_rot"], R, obj), rtol=1e-6)
+    got = with_rotation_priors(p, mcfg, out, R, obj)
+    np.testing.assert_allclose(got["delta_xy"], out["delta_xy"] + rotation_prior_output(p["xy_rot"], R, obj), rtol=1e-6)
     np.testing.assert_array_equal(got["z_logits"], out["z_logits"])  # no depth prior without z_rot
     b = 2
     batch = {

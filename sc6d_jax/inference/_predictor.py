@@ -165,7 +165,7 @@ def predict_crops(
     else:
         rgb_in, pe_in, obj_in = rgb, pe, obj_idx
 
-    from sc6d_jax.model import apply, encode_rotations, with_z_prior
+    from sc6d_jax.model import apply, encode_rotations, with_rotation_priors
 
     out = apply(params, mcfg, rgb_in, pe_in if mcfg.use_pe else None, obj_in)
     emb = out["rot_emb"].astype(f32)
@@ -203,7 +203,7 @@ def predict_crops(
             R_copy = R_copy.at[:, 0].set(R1)
             score_b = score_b.at[:, 0].set(c1)
         R_allo_k = undo_b[:, None] @ R_copy  # (B,k,3,3)
-    out = with_z_prior(params, mcfg, out, R_prior, obj_in)  # unchanged without the priors
+    out = with_rotation_priors(params, mcfg, out, R_prior, obj_in)  # unchanged without the priors
     dxy = out["delta_xy"].astype(f32).reshape(n_copies, B, 2)
     dz = _z_decode(out, lcfg, z_range, K_in).astype(f32).reshape(n_copies, B)
     undo2 = undo[:, :2, :2]  # (C,2,2)

@@ -6,7 +6,7 @@ rotation_logits / encode_rotations for the rotation head; LossConfig + loss_fn f
 
 from ._config import BACKBONES, ModelConfig
 from ._layers import choose_conv_impl, conv2d, group_norm, im2col, upsample2x_bilinear
-from ._network import apply, count_params, init, normalize_rgb, rot_cls_grid, with_z_prior
+from ._network import apply, count_params, init, normalize_rgb, rot_cls_grid, with_rotation_priors
 from ._losses import (
     F_REF,
     LossConfig,
@@ -35,7 +35,7 @@ __all__ = [
     "code_to_delta_z",
     "decode_delta_z",
     "rot_cls_grid",
-    "with_z_prior",
+    "with_rotation_priors",
     "gaussian_bin_targets",
     "axis_ring_deltas",
     "local_rotation_deltas",

@@ -134,7 +134,7 @@ class ModelConfig:
       64 px the paper's map sizes at 256 px (block 16x16, heads 8x8).
     - z_rot: a per-object depth prior from the rotation: an MLP of the allocentric rotation
       (9 entries -> head_hidden -> head_hidden -> n_z_bins, output layer zero at init) whose
-      logits are added to the image's z logits (:func:`with_z_prior`). With a box around the
+      logits are added to the image's z logits (:func:`with_rotation_priors`). With a box around the
       whole object, depth is the object's extent across the view over its extent in the crop,
       and the extent is a function of the rotation alone; the image head keeps what the
       rotation does not tell (perspective, occlusion). Training feeds the ground truth

@@ -24,8 +24,8 @@ from sc6d_jax.geometry import (
 )
 
 from ._config import ModelConfig
-from ._network import apply, rot_cls_grid, vote_grid, with_z_prior
-from ._rotation import rotation_logits, z_prior_logits
+from ._network import apply, rot_cls_grid, vote_grid, with_rotation_priors
+from ._rotation import rotation_logits, rotation_prior_output
 
 Z_MODES = ("regression", "classification", "expectation")
 Z_LOSSES = ("focal", "ce", "gauss")
@@ -485,10 +485,10 @@ def loss_fn(
         if lcfg.z_rot_noise_deg > 0:
             R_z = R_gt @ local_rotation_deltas(jax.random.fold_in(key, 3), (R_gt.shape[0],), 0.0, lcfg.z_rot_noise_deg)
         if mcfg.z_rot and lcfg.z_rot_separate:  # the depth prior on its own, the image head as without it
-            extra["loss_z_prior"] = depth_loss({"z_logits": z_prior_logits(params["z_rot"], R_z, obj_idx)})[0]
-            out = with_z_prior(params, dataclasses.replace(mcfg, z_rot=False), out, R_z, obj_idx)
+            extra["loss_z_prior"] = depth_loss({"z_logits": rotation_prior_output(params["z_rot"], R_z, obj_idx)})[0]
+            out = with_rotation_priors(params, dataclasses.replace(mcfg, z_rot=False), out, R_z, obj_idx)
         else:
-            out = with_z_prior(params, mcfg, out, R_z, obj_idx)
+            out = with_rotation_priors(params, mcfg, out, R_z, obj_idx)
     loss_z, code_pred = depth_loss(out)
     loss_xy = jnp.mean(jnp.sum(jnp.abs(out["delta_xy"] - dxy), axis=-1))
 

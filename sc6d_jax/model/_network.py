@@ -12,7 +12,7 @@ from ._config import ModelConfig
 from ._layers import dense, init_dense, make_rng, split
 from ._encoder import backbone, conv_gn_relu, decoder, init_backbone, init_conv_gn, init_decoder
 from ._pose_decoder import block_map_size, head_map_size, init_pose_decoder, pose_decoder
-from ._rotation import _init_stacked_dense, _l2n, init_rotation_head, init_z_prior, z_prior_logits
+from ._rotation import _init_stacked_dense, _l2n, init_rotation_head, init_rotation_prior, rotation_prior_output
 
 #: ImageNet statistics (torchvision), so that converted ImageNet weights see familiar inputs.
 RGB_MEAN = (0.485, 0.456, 0.406)
@@ -42,7 +42,7 @@ def init(key: jax.Array, cfg: ModelConfig) -> dict:
     if cfg.rot_readout:  # the next child: the parts above are drawn as without it
         params["rot_readout"] = _init_stacked_dense(split(rng, 1)[0], cfg.n_objects, cfg.emb_dim, 6, scale=1.0)
     if cfg.z_rot:  # the next child
-        params["z_rot"] = init_z_prior(split(rng, 1)[0], cfg)
+        params["z_rot"] = init_rotation_prior(split(rng, 1)[0], cfg)
     if cfg.rot_cls:  # the next child
         n = len(rot_cls_grid(cfg.rot_cls))
         params["rot_cls"] = _init_stacked_dense(split(rng, 1)[0], cfg.n_objects, cfg.head_hidden, n, scale=0.01)
@@ -59,7 +59,7 @@ def init(key: jax.Array, cfg: ModelConfig) -> dict:
         else:
             params["view_head"] = init_dense(split(rng, 1)[0], c, out, scale=0.01)
     if cfg.xy_rot:  # the next child
-        params["xy_rot"] = init_z_prior(split(rng, 1)[0], cfg, out_dim=2)
+        params["xy_rot"] = init_rotation_prior(split(rng, 1)[0], cfg, out_dim=2)
     if cfg.xy_vote:  # the next child
         kc, ko = split(split(rng, 1)[0], 2)
         cin, c = (cfg.feat_dim, cfg.feat_dim) if cfg.xy_vote_from == "feat" else (8 * cfg.pose_width, cfg.pose_width)
@@ -194,7 +194,7 @@ def apply(
     return {"rot_emb": emb, "delta_xy": dxy, "z_logits": zl, "mask_logit": mask_logit, **extra}
 
 
-def with_z_prior(params: dict, cfg: ModelConfig, out: dict, R_allo: jax.Array, obj_idx: jax.Array) -> dict:
+def with_rotation_priors(params: dict, cfg: ModelConfig, out: dict, R_allo: jax.Array, obj_idx: jax.Array) -> dict:
     """``out`` with the rotation's priors: the depth prior added to its z logits (``cfg.z_rot``)
     and the centre's offset added to its delta_xy (``cfg.xy_rot``); unchanged without them.
     R_allo (B,3,3): the allocentric rotation each crop is decoded with (the ground truth in
@@ -203,9 +203,9 @@ def with_z_prior(params: dict, cfg: ModelConfig, out: dict, R_allo: jax.Array, o
         return out
     out = dict(out)
     if cfg.z_rot:
-        out["z_logits"] = out["z_logits"] + z_prior_logits(params["z_rot"], R_allo, obj_idx)
+        out["z_logits"] = out["z_logits"] + rotation_prior_output(params["z_rot"], R_allo, obj_idx)
     if cfg.xy_rot:
-        out["delta_xy"] = out["delta_xy"] + z_prior_logits(params["xy_rot"], R_allo, obj_idx)
+        out["delta_xy"] = out["delta_xy"] + rotation_prior_output(params["xy_rot"], R_allo, obj_idx)
     return out
 
 

@@ -64,7 +64,7 @@ def init_rotation_head(key: np.random.Generator, cfg: ModelConfig) -> dict:
     }
 
 
-def init_z_prior(key: np.random.Generator, cfg: ModelConfig, out_dim: int | None = None) -> dict:
+def init_rotation_prior(key: np.random.Generator, cfg: ModelConfig, out_dim: int | None = None) -> dict:
     """Per-object MLP 9 -> head_hidden -> head_hidden -> out_dim (default n_z_bins); the output
     layer starts at zero, so a fresh prior adds nothing to what it is added to."""
     k1, k2, k3 = split(key, 3)
@@ -74,8 +74,10 @@ def init_z_prior(key: np.random.Generator, cfg: ModelConfig, out_dim: int | None
             "out": {"w": np.zeros_like(out["w"]), "b": out["b"]}}
 
 
-def z_prior_logits(p: dict, R: jax.Array, obj_idx: jax.Array) -> jax.Array:
-    """(B, n_z_bins) depth-prior logits of rotations R (B,3,3) for objects obj_idx (B,)."""
+def rotation_prior_output(p: dict, R: jax.Array, obj_idx: jax.Array) -> jax.Array:
+    """(B, out_dim) output of a rotation prior (``init_rotation_prior``) for rotations R (B,3,3) of
+    objects obj_idx (B,): the depth prior's z logits (``model.z_rot``) or the centre's offset
+    (``model.xy_rot``)."""
     obj = jnp.asarray(obj_idx, jnp.int32)
     sel = jax.tree.map(lambda a: a[obj], p)
     x = R.reshape(R.shape[0], 9).astype(jnp.float32)

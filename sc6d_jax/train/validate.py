@@ -110,7 +110,7 @@ class Validator:
     def _predict(self, params: Any, lib, rgb, pe, K, center, side, obj_idx) -> dict[str, jax.Array]:
         from sc6d_jax.geometry import allocentric_to_egocentric, decode_translation
         from sc6d_jax.inference._matching import match_library
-        from sc6d_jax.model import apply, decode_delta_z, with_z_prior
+        from sc6d_jax.model import apply, decode_delta_z, with_rotation_priors
 
         cfg = self.cfg
         mcfg = cfg.model
@@ -121,7 +121,7 @@ class Validator:
                           obj_idx)
         best = m.index[:, 0]
         R_allo = self.lib_R[best]
-        out = with_z_prior(params, mcfg, out, R_allo, obj_idx)  # the rotation's priors (depth, centre)
+        out = with_rotation_priors(params, mcfg, out, R_allo, obj_idx)  # the rotation's priors (depth, centre)
         dz = decode_delta_z(out, cfg.loss, cfg.z_range, K)
         t = decode_translation(out["delta_xy"], dz, K, center, side, mcfg.crop_size)
         return {"R": allocentric_to_egocentric(R_allo, t), "t": t}
