@@ -567,7 +567,9 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # A tighter crop (model.crop_pad=1.2 instead of the authors' 1.5: the object spans 53 instead of
         # 43 of the 64 pixels; obj 1, 6,000 steps): ahead early (validation 0.351 vs 0.328 at step 1,000),
         # level at the end: test 0.663 vs 0.658 without TTA, 0.690 vs 0.692 fused, depth 1.70 vs 2.19 %
-        # fused (obj1_pad12*); the 14 objects' hour: see the README ("A tighter crop").
+        # fused (obj1_pad12*); the 14 objects' hour, one seed: validation 0.472 (level), 390 targets 0.438 /
+        # 0.467 fused vs the preset seeds' 0.414 / 0.404 and 0.452 / 0.451, demo 0.416 / 0.471 vs 0.391-0.412
+        # / 0.478-0.488 (cpu_14objects_h1_pad12*; unpaired): not kept.
         # A batch of 48 in obj 1's 6,000 steps (two seeds): fused test 0.707 / 0.712 vs 0.692 / 0.682
         # (+0.015 +- 0.011, +0.030 +- 0.011), the obj-1 targets met, but 1.4x the time (10.6-10.7 vs
         # 6.9-7.8 min here, 14-15 on the earlier machines) and not ahead per minute (obj1_bs48*); it
