@@ -574,6 +574,9 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # (+0.015 +- 0.011, +0.030 +- 0.011), the obj-1 targets met, but 1.4x the time (10.6-10.7 vs
         # 6.9-7.8 min here, 14-15 on the earlier machines) and not ahead per minute (obj1_bs48*); it
         # would hold about 19,000 steps in the hour, which is not yet measured.
+        # A moving average of the parameters (ema=0.998; obj 1, 6,000 steps): ahead mid-run (validation
+        # 0.581 vs 0.535 at step 3,000), level at the end of the cosine schedule (test 0.659 vs 0.658, fused
+        # 0.689 vs 0.692; obj1_ema*): off.
         # 28,000 steps: about an hour on 2 cores with one renderer worker (54.6 min with GroupNorm in
         #   one pass; 26,000 took 57.6 before it). All 14 objects: validation 0.470 / 23.4 deg /
         #   2.09 % vs 0.458 / 29.6 / 2.26 % at 26,000 with the old GroupNorm; demo 0.391 without TTA,
