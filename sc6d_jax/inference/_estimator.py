@@ -4,8 +4,8 @@
     poses = est.predict(image, K, boxes, obj_ids, tta=False, top_k=1, refine=False, tta_mode="fuse")
 
 Crops are made exactly as the training stream makes them (:mod:`sc6d_jax.geometry`: square
-box of side ``crop_pad`` max(w, h) around the box centre (the model's ``crop_pad``, 1.5 by default), ``warp_crop`` bilinear with zero border, PE
-map from K and T). The box count is padded to the next power of two so that calls with the
+box of side ``crop_pad * max(w, h)`` around the box centre, with the model's ``crop_pad``, 1.5
+by default; ``warp_crop`` bilinear with zero border, PE map from K and T). The box count is padded to the next power of two so that calls with the
 same bucket reuse one compiled predictor. Input is validated before anything is compiled.
 """
 
