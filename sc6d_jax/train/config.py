@@ -573,7 +573,8 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # A batch of 48 in obj 1's 6,000 steps (two seeds): fused test 0.707 / 0.712 vs 0.692 / 0.682
         # (+0.015 +- 0.011, +0.030 +- 0.011), the obj-1 targets met, but 1.4x the time (10.6-10.7 vs
         # 6.9-7.8 min here, 14-15 on the earlier machines) and not ahead per minute (obj1_bs48*); it
-        # would hold about 19,000 steps in the hour, which is not yet measured.
+        # would hold about 19,000 steps in the hour: the hour with it (19,000 steps, 34.4 min here, one seed),
+        # 390 targets 0.404 / 0.457 fused, demo 0.428 / 0.477, level with the preset (cpu_14objects_h1_bs48*).
         # A moving average of the parameters (ema=0.998; obj 1, 6,000 steps): ahead mid-run (validation
         # 0.581 vs 0.535 at step 3,000), level at the end of the cosine schedule (test 0.659 vs 0.658, fused
         # 0.689 vs 0.692; obj1_ema*): off.
