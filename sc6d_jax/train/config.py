@@ -577,7 +577,7 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # 390 targets 0.404 / 0.457 fused, demo 0.428 / 0.477, level with the preset (cpu_14objects_h1_bs48*).
         # A moving average of the parameters (ema=0.998; obj 1, 6,000 steps): ahead mid-run (validation
         # 0.581 vs 0.535 at step 3,000), level at the end of the cosine schedule (test 0.659 vs 0.658, fused
-        # 0.689 vs 0.692; obj1_ema*): off.
+        # 0.689 vs 0.692; obj1_ema998*, as the earlier obj1_ema*): off.
         # 28,000 steps: about an hour on 2 cores with one renderer worker (54.6 min with GroupNorm in
         #   one pass; 26,000 took 57.6 before it). All 14 objects: validation 0.470 / 23.4 deg /
         #   2.09 % vs 0.458 / 29.6 / 2.26 % at 26,000 with the old GroupNorm; demo 0.391 without TTA,
