@@ -268,6 +268,17 @@ class TrainConfig:
         """Steps of the learning-rate warm-up: optim.warmup_steps or its fraction of the run."""
         return max(self.optim.warmup_steps, int(round(self.optim.warmup_fraction * self.steps)))
 
+    def crop_fields(self) -> dict[str, Any]:
+        """``sc6d_jax.data.StreamConfig`` keywords that decide the run's scenes and how its crops are
+        cut: the stream's set fields (:meth:`StreamSettings.set_scene_fields`) and the model's crop
+        padding where it is not the stream's default 1.5 (``model.crop_pad``). The training stream
+        and the validation crops both take them."""
+        fields = self.stream.set_scene_fields()
+        pad = getattr(self.model, "crop_pad", 1.5)
+        if pad != 1.5:
+            fields["pad"] = float(pad)
+        return fields
+
     def __post_init__(self) -> None:
         for name in ("model", "loss", "stream", "optim"):
             if not dataclasses.is_dataclass(getattr(self, name)):

@@ -249,7 +249,7 @@ def stream_fields(cfg: TrainConfig, models_dir: str | os.PathLike, workers: int 
         models_dir=Path(models_dir), crop_size=cfg.model.crop_size, workers=workers,
         obj_ids=cfg.stream.obj_ids, augment=cfg.stream.augment,
     )
-    common.update(cfg.stream.set_scene_fields())  # None = the stream's default
+    common.update(cfg.crop_fields())  # None = the stream's default
     if cfg.curriculum_steps:
         common["curriculum"] = cfg.curriculum_steps
     if getattr(cfg.loss, "w_dense", 0) > 0 or getattr(cfg.loss, "w_dense_xyz", 0) > 0:
@@ -260,8 +260,6 @@ def stream_fields(cfg: TrainConfig, models_dir: str | os.PathLike, workers: int 
         common["view"] = cfg.model.view_head
     if getattr(cfg.model, "pe_turns", False):
         common["pe_turns"] = True
-    if getattr(cfg.model, "crop_pad", 1.5) != 1.5:  # the model's crop padding (the stream's default 1.5)
-        common["pad"] = float(cfg.model.crop_pad)
     for name in PASSED_WHEN_SET:  # stream options, when on
         if getattr(cfg.stream, name):
             common[name] = getattr(cfg.stream, name)

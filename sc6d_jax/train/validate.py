@@ -66,9 +66,7 @@ class Validator:
             models_dir=str(models_dir), crop_size=cfg.model.crop_size, batch_size=self.batch,
             seed=_val_seed(cfg.seed), workers=0, obj_ids=tuple(cfg.stream.obj_ids), augment=False,
         )
-        kw.update(cfg.stream.set_scene_fields())  # the run's scenes, cut as its crops are
-        if getattr(cfg.model, "crop_pad", 1.5) != 1.5:
-            kw["pad"] = float(cfg.model.crop_pad)
+        kw.update(cfg.crop_fields())  # the run's scenes, cut as its crops are
         kw.update(stream_overrides or {})
         n_batches = -(-self.n // self.batch)
         with CropStream(StreamConfig(**kw)) as stream:
