@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from sc6d_jax import model
-from sc6d_jax.model._losses import vote_loss
+from sc6d_jax.model._losses import downsample_mask, vote_loss
 from sc6d_jax.model._network import vote_delta_xy, vote_grid
 
 
@@ -92,6 +94,18 @@ def test_vote_head_trains_through_the_loss_and_checks_its_config(micro_model):
     assert float(aux["loss_xy_vote"]) > 0 and float(jnp.abs(grads["xy_vote"]["out"]["w"]).sum()) > 0
     total = sum(getattr(lcfg, "w_" + k) * float(aux["loss_" + k]) for k in ("rot", "xy", "z", "mask", "xy_vote"))
     np.testing.assert_allclose(float(loss), total, rtol=1e-5)
+    # each vote weighs the visible fraction of its cell, also when the mask head's target is the
+    # block's centre pixel (mask_downsample="nearest"): a mask edge through the blocks' middles
+    half = dict(batch, mask_visib=np.pad(np.ones((b, 14, 14), np.uint8), ((0, 0), (9, 9), (9, 9))))
+    out = model.apply(params, mcfg, jnp.asarray(half["rgb"]), jnp.asarray(half["pe"]), jnp.zeros(b, jnp.int32))
+    f = 32 // out["xy_votes"].shape[1]
+    area = vote_loss(out["xy_votes"], jnp.asarray(half["delta_xy"]), downsample_mask(jnp.asarray(half["mask_visib"]), f))
+    nearest = vote_loss(out["xy_votes"], jnp.asarray(half["delta_xy"]),
+                        downsample_mask(jnp.asarray(half["mask_visib"]), f, "nearest"))
+    assert abs(float(area) - float(nearest)) > 1e-4  # the two weightings differ on this mask
+    for mode in ("area", "nearest"):
+        _, aux_m = model.loss_fn(params, mcfg, dataclasses.replace(lcfg, mask_downsample=mode), half, key, (1.0, 2.0))
+        np.testing.assert_allclose(float(aux_m["loss_xy_vote"]), float(area), rtol=1e-5)
     # delta_xy is the votes' (the xy head is not read: no gradient reaches it)
     assert float(jnp.abs(grads["pose_decoder"]["xy"]["out"]["w"]).sum()) == 0
     with pytest.raises(ValueError, match="xy_vote=True"):

@@ -501,9 +501,11 @@ def loss_fn(
         extra["loss_dense"] = dense_loss(out, batch, slice(0, 4))
         loss = loss + lcfg.w_dense * extra["loss_dense"]
     if lcfg.w_xy_vote > 0:
+        # each vote weighs the visible fraction of its cell (area), whatever the mask head's target
         f = mcfg.crop_size // out["xy_votes"].shape[1]
-        extra["loss_xy_vote"] = vote_loss(out["xy_votes"], dxy, target if f == 4 else
-                                          downsample_mask(jnp.asarray(batch["mask_visib"]), f, "area"))
+        cells = target if (f, lcfg.mask_downsample) == (4, "area") else \
+            downsample_mask(jnp.asarray(batch["mask_visib"]), f, "area")
+        extra["loss_xy_vote"] = vote_loss(out["xy_votes"], dxy, cells)
         loss = loss + lcfg.w_xy_vote * extra["loss_xy_vote"]
     if lcfg.w_dense_xyz > 0:
         extra["loss_dense_xyz"] = dense_loss(out, batch, slice(4, 7))
