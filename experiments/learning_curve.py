@@ -31,7 +31,8 @@ the long run's figure in the README, drawn from its last carried state (commit `
 ``--from-csv NAME=CSV:CONFIG`` (repeatable, alone or with ``--from-run``) takes the rows of one
 configuration from a CSV this script wrote earlier (``experiments/results/learning_curves/``), so a
 new run can be drawn beside a finished one whose run folder is gone; ``--x steps`` draws them
-against training steps, for runs timed on different machines.
+against training steps, for runs timed on different machines, ``--x crops`` against crops per
+object (also for runs of different batch sizes).
 
 Curves longer than three hours are drawn against hours instead of minutes. A run continued under
 a changed stream or losses (``sc6d train --resume --amend``) gets a dotted line where it changed.
@@ -132,9 +133,17 @@ def amendment_marks(name: str, run_dir: Path, rows: list[dict]) -> list[tuple[fl
     return marks
 
 
+def x_values(rows: list[dict], x_axis: str, hours: bool = False) -> list[float]:
+    """The x coordinates of one configuration's rows: training minutes (hours with ``hours``),
+    steps, or crops per object (``x_axis`` "minutes", "steps", "crops")."""
+    key = {"minutes": "train_min", "steps": "step", "crops": "crops_per_object"}[x_axis]
+    return [float(r[key]) / (60 if hours and x_axis == "minutes" else 1) for r in rows]
+
+
 def plot(rows: list[dict], path: Path, marks: list[tuple[float, str]] = (), x_axis: str = "minutes") -> None:
     """``marks``: (training minutes, label) drawn as vertical lines (mid-run config changes).
-    ``x_axis``: "minutes" (training time) or "steps" (for runs from different machines)."""
+    ``x_axis``: "minutes" (training time), "steps" or "crops" (crops per object; for runs from
+    different machines, "crops" also for runs of different batch sizes)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -142,11 +151,11 @@ def plot(rows: list[dict], path: Path, marks: list[tuple[float, str]] = (), x_ax
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
     names = list(dict.fromkeys(r["config"] for r in rows))
-    steps = x_axis == "steps"
+    steps = x_axis in ("steps", "crops")
     hours = not steps and max((r["train_min"] for r in rows), default=0.0) > 180
     for name in names:
         rs = [r for r in rows if r["config"] == name]
-        x = [r["step"] if steps else r["train_min"] / 60 if hours else r["train_min"] for r in rs]
+        x = x_values(rs, x_axis, hours)
         lines = [axes[i].plot(x, [r[k] * (100 if i == 2 else 1) for r in rs], "o-", label=name)[0]
                  for i, k in enumerate(("val_ar", "val_rot_median_deg", "val_depth_rel_median"))]
         raw = [(xi, r) for xi, r in zip(x, rs) if r.get("val_raw_ar") is not None]
@@ -159,7 +168,8 @@ def plot(rows: list[dict], path: Path, marks: list[tuple[float, str]] = (), x_ax
         for i, ax in enumerate(axes):
             ax.axvline(x_min / 60 if hours else x_min, color="0.4", ls=":", lw=1.2, label=label if i == 0 else None)
     for ax, t in zip(axes, ("validation AR (MSSD, MSPD)", "median rotation error [deg]", "median depth error [%]")):
-        ax.set_xlabel("training steps" if steps else f"training {'hours' if hours else 'minutes'} (2 CPU cores)")
+        ax.set_xlabel("training crops per object" if x_axis == "crops" else "training steps" if steps
+                      else f"training {'hours' if hours else 'minutes'} (2 CPU cores)")
         ax.set_title(t)
         ax.grid(alpha=0.3)
     from matplotlib.ticker import FuncFormatter, LogLocator
@@ -194,8 +204,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--from-csv", action="append", default=[], metavar="NAME=CSV:CONFIG",
                    help="plot the rows of CONFIG in an earlier curves CSV as NAME (repeatable; with --from-run "
                         "or alone); trains nothing")
-    p.add_argument("--x", choices=("minutes", "steps"), default="minutes",
-                   help="x axis of --from-run / --from-csv plots (steps: runs timed on different machines)")
+    p.add_argument("--x", choices=("minutes", "steps", "crops"), default="minutes",
+                   help="x axis of --from-run / --from-csv plots (steps: runs timed on different machines; crops: "
+                        "crops per object, also for runs of different batch sizes)")
     p.add_argument("--test-tta", action="store_true",
                    help="also score each final model with fused test-time augmentation (sc6d predict --tta)")
     p.add_argument("--name", default="curves", help="file name of the CSV and the plot in OUT (default curves)")

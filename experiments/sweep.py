@@ -82,7 +82,9 @@ BUDGETS: dict[str, Budget] = {
     "medium": Budget(preset="cpu", steps=4000, obj_ids=(1, 3, 5, 8), scenes=4, images_per_scene=10,
                      objects_per_image=4, library_size=480_000,
                      so3_sizes=(20_000, 60_000, 180_000, 480_000, 1_440_000), seeds=(0, 1, 2),
-                     checkpoint_every=1000, train_sets=("loss.w_z_l1=0", "optim.lr=0.002", "model.pose_downsample=2"),
+                     # the committed medium sweep's settings, pinned as the cpu preset moved on
+                     checkpoint_every=1000, train_sets=("loss.w_z_l1=0", "optim.lr=0.002", "model.pose_downsample=2",
+                                                        "stream.batch_size=32"),
                      workers=1),
     "full": Budget(preset="cpu", steps=None, obj_ids=None, scenes=4, images_per_scene=10, objects_per_image=5,
                    library_size=480_000, so3_sizes=(20_000, 60_000, 180_000, 480_000, 1_440_000), seeds=(0, 1, 2),

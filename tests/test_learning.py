@@ -240,6 +240,11 @@ def test_learning_curve_harness_writes_csv_and_plot(tmp_path, models):
     mixed = list(csv.DictReader(open(tmp_path / "plots" / "mixed.csv")))
     assert mixed == [r for r in rows if r["config"] == "a"] + [{**r, "config": "old_b"} for r in rows if r["config"] == "b"]
     assert (tmp_path / "plots" / "mixed.png").stat().st_size > 10_000
+    # --x crops: crops per object, for runs of different batch sizes
+    assert lc.main(["--out", str(tmp_path / "plots"), "--name", "crops", "--x", "crops", "--from-run", f"a={out / 'a'}"]) == 0
+    assert lc.x_values(a_rows, "crops") == [float(r["crops_per_object"]) for r in a_rows]
+    assert lc.x_values(a_rows, "steps") == [float(r["step"]) for r in a_rows] != lc.x_values(a_rows, "crops")
+    assert lc.x_values(a_rows, "minutes", hours=True) == [float(r["train_min"]) / 60 for r in a_rows]
     assert lc.main(["--out", str(tmp_path / "plots"), "--from-csv", f"x={out / 'curves.csv'}:nosuch"]) == 2
     assert lc.main(["--out", str(tmp_path / "plots"), "--from-csv", f"x={out / 'curves.csv'}"]) == 2
 

@@ -263,6 +263,8 @@ def test_every_budget_and_row_builds_a_valid_training_config(tmp_path):
                 assert cfg.loss.w_z_l1 == 0.0, (name, row.name)
             if budget.obj_ids:
                 assert cfg.stream.obj_ids == budget.obj_ids
+            if name == "medium":  # the committed sweep's batch, pinned as the cpu preset moved on to 48
+                assert cfg.stream.batch_size == 32, row.name
     medium = sweep.BUDGETS["medium"]
     assert medium.steps == 4000 and len(medium.obj_ids) == 4 and medium.seeds == (0, 1, 2)
 
