@@ -119,12 +119,14 @@ def val_shares(run_dir: Path) -> dict[int, tuple[str | None, "np.ndarray"]]:
     return out
 
 
-def amendment_marks(name: str, run_dir: Path, rows: list[dict]) -> list[tuple[float, str]]:
-    """(training minutes, label) of each mid-run change of the run's config (``sc6d train
-    --amend``), placed at the validation record of its step (an amendment starts at a checkpoint)."""
+def amendment_marks(name: str, run_dir: Path, rows: list[dict], x_axis: str = "minutes") -> list[tuple[float, str]]:
+    """(x, label) of each mid-run change of the run's config (``sc6d train --amend``), placed at
+    the validation record of its step (an amendment starts at a checkpoint); x in the plot's
+    ``x_axis`` units (training minutes, steps or crops per object, as :func:`x_values`)."""
     from sc6d_jax.train.loop import read_amendments
 
-    at = {r["step"]: r["train_min"] for r in rows if r["config"] == name}
+    mine = [r for r in rows if r["config"] == name]
+    at = dict(zip((r["step"] for r in mine), x_values(mine, x_axis)))
     marks = []
     for a in read_amendments(run_dir):
         if a["step"] in at:
@@ -141,7 +143,7 @@ def x_values(rows: list[dict], x_axis: str, hours: bool = False) -> list[float]:
 
 
 def plot(rows: list[dict], path: Path, marks: list[tuple[float, str]] = (), x_axis: str = "minutes") -> None:
-    """``marks``: (training minutes, label) drawn as vertical lines (mid-run config changes).
+    """``marks``: (x in ``x_axis`` units, label) drawn as vertical lines (mid-run config changes).
     ``x_axis``: "minutes" (training time), "steps" or "crops" (crops per object; for runs from
     different machines, "crops" also for runs of different batch sizes)."""
     import matplotlib
@@ -316,7 +318,7 @@ def _from_runs(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     _write_csv(out / f"{args.name}.csv", rows, COLUMNS)
-    plot(rows, out / f"{args.name}.png", [m for name, run in runs for m in amendment_marks(name, run, rows)],
+    plot(rows, out / f"{args.name}.png", [m for name, run in runs for m in amendment_marks(name, run, rows, args.x)],
          x_axis=args.x)
     for name in [n for n, _ in runs] + [n for n, _ in csv_parts]:
         last = [r for r in rows if r["config"] == name][-1]

@@ -232,6 +232,9 @@ def test_learning_curve_harness_writes_csv_and_plot(tmp_path, models):
     parsed = [{**r, "step": int(r["step"]), "train_min": float(r["train_min"])} for r in a_rows]
     assert lc.amendment_marks("a", out / "a", parsed) == [
         (float(a_rows[-1]["train_min"]), f"a: from step {step:,}: stream.box_scale, stream.box_shift")]
+    # on a steps or crops axis the mark stands at the step's steps or crops, not its minutes
+    assert [x for x, _ in lc.amendment_marks("a", out / "a", parsed, "steps")] == [float(step)]
+    assert [x for x, _ in lc.amendment_marks("a", out / "a", parsed, "crops")] == [float(a_rows[-1]["crops_per_object"])]
     assert lc.main(["--out", str(tmp_path / "plots"), "--name", "amended", "--from-run", f"a={out / 'a'}"]) == 0
     # --from-csv takes one configuration's rows from an earlier CSV (its run folder may be gone),
     # beside a run; --x steps draws them against steps
