@@ -153,8 +153,7 @@ def plot(rows: list[dict], path: Path, marks: list[tuple[float, str]] = (), x_ax
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
     names = list(dict.fromkeys(r["config"] for r in rows))
-    steps = x_axis in ("steps", "crops")
-    hours = not steps and max((r["train_min"] for r in rows), default=0.0) > 180
+    hours = x_axis == "minutes" and max((r["train_min"] for r in rows), default=0.0) > 180
     for name in names:
         rs = [r for r in rows if r["config"] == name]
         x = x_values(rs, x_axis, hours)
@@ -170,8 +169,8 @@ def plot(rows: list[dict], path: Path, marks: list[tuple[float, str]] = (), x_ax
         for i, ax in enumerate(axes):
             ax.axvline(x_min / 60 if hours else x_min, color="0.4", ls=":", lw=1.2, label=label if i == 0 else None)
     for ax, t in zip(axes, ("validation AR (MSSD, MSPD)", "median rotation error [deg]", "median depth error [%]")):
-        ax.set_xlabel("training crops per object" if x_axis == "crops" else "training steps" if steps
-                      else f"training {'hours' if hours else 'minutes'} (2 CPU cores)")
+        ax.set_xlabel({"crops": "training crops per object", "steps": "training steps"}.get(
+            x_axis, f"training {'hours' if hours else 'minutes'} (2 CPU cores)"))
         ax.set_title(t)
         ax.grid(alpha=0.3)
     from matplotlib.ticker import FuncFormatter, LogLocator
