@@ -602,7 +602,12 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         # 0.473 vs 0.496 (-0.023 +- 0.018), 390 targets 0.472 vs 0.476 fused, demo 0.510 vs 0.453 fused
         # (+-0.04 on 60 targets) (cpu_14objects_h1_lr3e3_s1*): level or behind, lr stays 2e-3. The
         # higher final rate with the average, seed 1: validation -0.002 +- 0.012, fused test 0.726 vs
-        # 0.712 (+0.014 +- 0.010; obj1_b48_ema_s1*): over the 14 objects' hour not yet measured.
+        # 0.712 (+0.014 +- 0.010; obj1_b48_ema_s1*). Over the 14 objects' hour (seed 1) it is ahead
+        # mid-run (validation 0.440 vs 0.364 at step 8,000) and level at the end: 0.492 vs 0.496, 390
+        # targets 0.475 vs 0.476 fused, demo 0.485 vs 0.453 (cpu_14objects_h1_emaend_s1*): off.
+        # Width 32 (model.width=32, decoder_width=64, the builtin's) in the hour's minutes (12,000
+        # steps, 47.7 min, seed 1): ahead per step, behind at the end, validation 0.453 vs 0.496, 390
+        # targets 0.430 vs 0.476 fused (-0.045 +- 0.011) (cpu_14objects_h1_w32_s1*): width 16 stays.
         # 21,000 steps of 48: about an hour on 2 cores with one renderer worker (38.9 min on the
         #   machine of sessions 44-46, where 28,000 of 32 took 37.9-42.3). Before it, 28,000 steps of
         #   32 (54.6 min on the earlier machines with GroupNorm in one pass; 26,000 took 57.6 before
