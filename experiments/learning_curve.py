@@ -165,9 +165,9 @@ def plot(rows: list[dict], path: Path, marks: list[tuple[float, str]] = (), x_ax
             for i, k in enumerate(RAW):
                 axes[i].plot(xr, [r[k] * (100 if i == 2 else 1) for _, r in raw], "x--", color=lines[i].get_color(),
                              alpha=0.6, label=f"{name}: raw parameters (val_* = their moving average)")
-    for x_min, label in marks:
+    for x_at, label in marks:  # x_at in x_axis units (minutes on a minutes axis, drawn in hours if hours)
         for i, ax in enumerate(axes):
-            ax.axvline(x_min / 60 if hours else x_min, color="0.4", ls=":", lw=1.2, label=label if i == 0 else None)
+            ax.axvline(x_at / 60 if hours else x_at, color="0.4", ls=":", lw=1.2, label=label if i == 0 else None)
     for ax, t in zip(axes, ("validation AR (MSSD, MSPD)", "median rotation error [deg]", "median depth error [%]")):
         ax.set_xlabel({"crops": "training crops per object", "steps": "training steps"}.get(
             x_axis, f"training {'hours' if hours else 'minutes'} (2 CPU cores)"))
