@@ -522,3 +522,22 @@ def test_object_weights_steer_how_often_each_object_is_drawn(models):
             StreamConfig(str(models), obj_weights=bad, **kw)
     with pytest.raises(ValueError, match="set obj_ids too"):
         StreamConfig(str(models), obj_weights=(1, 2))
+
+
+def test_colour_p_sets_how_often_crops_get_the_colour_augmentation(models):
+    """colour_p=0 keeps the rendered colours: each crop is its unaugmented render turned by its
+    label's quarter turn; the authors' 0.8 changes most crops; out-of-range values are refused."""
+    kw = dict(crop_size=32, batch_size=8, workers=0, obj_ids=(1, 5))
+    with CropStream(StreamConfig(str(models), augment=False, **kw)) as s:
+        plain = s.batch(2)
+    for p, want_changed in ((0.0, (0, 0)), (0.8, (4, 8))):
+        with CropStream(StreamConfig(str(models), colour_p=p, **kw)) as s:
+            b = s.batch(2)
+        changed = 0
+        for i in range(8):
+            D = b["R_allo"][i] @ plain["R_allo"][i].T  # Rz(90k): the crop was turned by k
+            k = int(np.round(np.arctan2(D[1, 0], D[0, 0]) / (np.pi / 2))) % 4
+            changed += not np.array_equal(b["rgb"][i], np.rot90(plain["rgb"][i], -k))
+        assert want_changed[0] <= changed <= want_changed[1], (p, changed)
+    with pytest.raises(ValueError, match="colour_p"):
+        StreamConfig(str(models), colour_p=1.5)

@@ -449,8 +449,8 @@ if __name__ == "__main__":
 
 
 def test_stream_settings_reach_the_stream(tmp_path):
-    """occlusion, curriculum, distance, placement and image_border of StreamSettings are passed
-    to the crop stream's config."""
+    """occlusion, curriculum, distance, placement, image_border and colour_p of StreamSettings are
+    passed to the crop stream's config."""
     from sc6d_jax.train import DataFns, StreamSettings, train
 
     seen = {}
@@ -464,17 +464,19 @@ def test_stream_settings_reach_the_stream(tmp_path):
 
     mf, _ = standin_fns()
     stream = StreamSettings(batch_size=8, occlusion=0.25, curriculum=7, distance=(3, 12), placement=[0.1, 0.9],
-                            image_border=True)
+                            image_border=True, colour_p=0.0)
     assert stream.distance == (3.0, 12.0) and stream.placement == (0.1, 0.9)
     with pytest.raises(Stop):
         train(standin_config(2, stream=stream), tmp_path, tmp_path / "run", progress=False, verbose=False,
               model_fns=mf, data_fns=DataFns(stream_config, StandinStream, lambda cfg: (0.1, 1.0)))
     assert (seen["occlusion"], seen["curriculum"], seen["distance"]) == (0.25, 7, (3.0, 12.0))
-    assert seen["placement"] == (0.1, 0.9) and seen["image_border"] is True
+    assert seen["placement"] == (0.1, 0.9) and seen["image_border"] is True and seen["colour_p"] == 0.0
     with pytest.raises(ValueError, match="stream.distance"):
         StreamSettings(distance=(5, 2))
     with pytest.raises(ValueError, match="stream.placement"):
         StreamSettings(placement=(0.2, 1.2))
+    with pytest.raises(ValueError, match="stream.colour_p"):
+        StreamSettings(colour_p=-0.1)
 
 
 def _state(ckpt: Path, template):

@@ -71,7 +71,11 @@ class StreamConfig:
             positive weight per id, in their order); None = all equally often (the streams of
             earlier runs are unchanged). The z range (``delta_z_range``) draws uniformly either
             way, so a weighted run decodes depth as the unweighted one does.
-        augment: colour augmentation (p 0.8) and random in-plane 90-degree rotations.
+        augment: colour augmentation (with probability ``colour_p``) and random in-plane
+            90-degree rotations.
+        colour_p: the probability that a crop gets the colour augmentation (``colour_augment``:
+            blur, per-channel gain and offset, contrast, noise, pixel dropout, inversion), the
+            authors' 0.8; 0 keeps the rendered colours (the quarter turns stay with ``augment``).
         pe_turns: the PE map turns with the crop in that augmentation (``sc6d_jax.geometry.turn_pe``;
             False = the authors': it stays unturned).
         occlusion: probability that other objects / primitives occlude the target.
@@ -214,6 +218,7 @@ class StreamConfig:
     tabletop: float = 0.0
     tabletop_spacing: tuple[float, float] | None = None
     image_border: bool = False
+    colour_p: float = 0.8
 
     def __post_init__(self) -> None:
         check_options(self)
@@ -230,6 +235,8 @@ class StreamConfig:
             raise ValueError(f"box_shift must be in [0, 1), got {self.box_shift!r}")
         if len(self.box_scale) != 2 or not 0.0 < self.box_scale[0] <= self.box_scale[1]:
             raise ValueError(f"box_scale must be (low, high) with 0 < low <= high, got {self.box_scale!r}")
+        if not 0.0 <= self.colour_p <= 1.0:
+            raise ValueError(f"colour_p must be a probability in [0, 1], got {self.colour_p!r}")
         if self.curriculum < 0:
             raise ValueError(f"curriculum must be >= 0 batches, got {self.curriculum}")
         if not 0.0 <= self.occlusion <= 1.0:
@@ -722,7 +729,7 @@ class _Worker:
             rgb[outside] = 0
         if cfg.augment:
             for j in range(B):
-                rgb[j] = colour_augment(rngs[j], rgb[j])
+                rgb[j] = colour_augment(rngs[j], rgb[j], p=cfg.colour_p)
                 if outside is not None:  # black as a crop cut from an image is, after any colour change
                     rgb[j][outside[j]] = 0
                 k = int(rngs[j].integers(4))

@@ -62,6 +62,9 @@ class StreamSettings:
             all equally often. The validation crops stay uniform, so runs with and without
             weights are scored on the same crops.
         augment: colour augmentation and random in-plane 90-degree rotations.
+        colour_p: the probability that a training crop gets the colour augmentation
+            (``sc6d_jax.data.StreamConfig.colour_p``; ``None`` = the stream's default, the
+            authors' 0.8). The validation crops never get it.
         occlusion: probability that occluders are drawn over the target (``None`` = the
             stream's default).
         curriculum: steps over which backgrounds and occlusion ramp from plain/none to the
@@ -96,6 +99,7 @@ class StreamSettings:
     obj_ids: tuple[int, ...] | None = None
     obj_weights: tuple[float, ...] | None = None
     augment: bool = True
+    colour_p: float | None = None
     occlusion: float | None = None
     curriculum: int = 0
     distance: tuple[float, float] | None = None
@@ -144,6 +148,8 @@ class StreamSettings:
             if len(b) != 2 or not 0.0 < b[0] <= b[1]:
                 raise ValueError(f"stream.box_scale must be (low, high) with 0 < low <= high, got {self.box_scale!r}")
             object.__setattr__(self, "box_scale", b)
+        if self.colour_p is not None and not 0.0 <= self.colour_p <= 1.0:
+            raise ValueError(f"stream.colour_p must be a probability in [0, 1] or None, got {self.colour_p!r}")
         if not 0.0 <= self.curriculum_fraction <= 1.0:
             raise ValueError(f"stream.curriculum_fraction must be in [0, 1], got {self.curriculum_fraction!r}")
         if not isinstance(self.batch_size, int) or self.batch_size < 1:

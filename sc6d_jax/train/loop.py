@@ -250,6 +250,8 @@ def stream_fields(cfg: TrainConfig, models_dir: str | os.PathLike, workers: int 
         obj_ids=cfg.stream.obj_ids, augment=cfg.stream.augment,
     )
     common.update(cfg.crop_fields())  # None = the stream's default
+    if cfg.stream.colour_p is not None:
+        common["colour_p"] = cfg.stream.colour_p
     if cfg.curriculum_steps:
         common["curriculum"] = cfg.curriculum_steps
     if getattr(cfg.loss, "w_dense", 0) > 0 or getattr(cfg.loss, "w_dense_xyz", 0) > 0:
