@@ -62,7 +62,9 @@ def test_presets_roundtrip_through_json():
     long = preset("long")
     assert long.steps == 150_000 and long.model == cpu.model and long.loss == cpu.loss
     # the long preset keeps the shipped builtin's batch of 32; otherwise the cpu preset's stream
-    assert long.stream.batch_size == 32 and dataclasses.replace(long.stream, batch_size=48) == cpu.stream
+    # and the authors' colour augmentation, which the cpu preset leaves out (stream.colour_p=0)
+    assert long.stream.batch_size == 32 and dataclasses.replace(long.stream, batch_size=48, colour_p=0.0) == cpu.stream
+    assert (cpu.stream.colour_p, long.stream.colour_p) == (0.0, None)
     assert (cpu.ema, long.ema) == (0.0, 0.9995)
     # the moving average is run-only: a run carried without it resumes with it (and back)
     assert config_differences(cpu.to_dict(), cpu.replace(ema=0.9995).to_dict()) == []
