@@ -627,7 +627,8 @@ def preset(name: str, **overrides: Any) -> TrainConfig:
         #   dumbbell 0.299 -> 0.344, obj 1 0.337 -> 0.402). Test images of real photographs need the
         #   augmentation: experiments/lmo.py's full budget sets stream.colour_p=0.8. Obj 1, 6,000 steps
         #   (seed 0): validation 0.729 vs 0.651 (+0.079 +- 0.012), test 0.720 vs 0.677 without TTA,
-        #   0.775 vs 0.707 fused (+0.068 +- 0.013), 4.0 deg, 1.26 % (obj1_col0*); every other figure
+        #   0.775 vs 0.707 fused (+0.068 +- 0.013), 4.0 deg, 1.26 % (obj1_col0*); seed 1: 0.703 vs 0.650,
+        #   0.766 vs 0.712 fused (+0.054 +- 0.012), 3.4 deg, 1.18 % (obj1_col0_s1*); every other figure
         #   in this comment was measured with the augmentation.
         # 21,000 steps of 48: about an hour on 2 cores with one renderer worker (38.9 min on the
         #   machine of sessions 44-46, where 28,000 of 32 took 37.9-42.3). Before it, 28,000 steps of
