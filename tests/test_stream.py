@@ -12,6 +12,12 @@ from sc6d_jax.data import CropStream, StreamConfig, delta_z_range
 
 
 
+def _quarter_turn(R_turned: np.ndarray, R: np.ndarray) -> int:
+    """k of the in-plane turn R_turned R^T = Rz(90k) of the stream's quarter-turn augmentation."""
+    D = R_turned @ R.T
+    return int(np.round(np.arctan2(D[1, 0], D[0, 0]) / (np.pi / 2))) % 4
+
+
 def test_batch_fields_and_labels(models):
     cfg = StreamConfig(str(models), crop_size=32, batch_size=6, workers=0, obj_ids=(1, 5, 9), augment=False)
     with CropStream(cfg) as s:
@@ -44,9 +50,8 @@ def test_rotation_augmentation_is_consistent(models):
     turned = 0
     for i in range(8):
         R_allo_true = np.asarray(G.egocentric_to_allocentric(b["R"][i], b["t"][i]))
-        D = b["R_allo"][i] @ R_allo_true.T  # Rz(90k)
-        k = int(np.round(np.arctan2(D[1, 0], D[0, 0]) / (np.pi / 2))) % 4
-        np.testing.assert_allclose(D, np.asarray(G.rot_z(k * np.pi / 2)), atol=1e-4)
+        k = _quarter_turn(b["R_allo"][i], R_allo_true)
+        np.testing.assert_allclose(b["R_allo"][i] @ R_allo_true.T, np.asarray(G.rot_z(k * np.pi / 2)), atol=1e-4)
         turned += k != 0
     assert turned > 0
 
@@ -67,8 +72,7 @@ def test_turned_crops_show_the_small_cube_where_their_labels_put_it(models):
     cube = 14.0  # the cube's centre on the bar's x axis, mm (objects/_builtin.py)
     for i in range(len(b["rgb"])):
         A = np.asarray(G.egocentric_to_allocentric(b["R"][i], b["t"][i]))
-        D = b["R_allo"][i] @ A.T  # Rz(90k): the crop was turned by k quarter turns
-        k = int(np.round(np.arctan2(D[1, 0], D[0, 0]) / (np.pi / 2))) % 4
+        k = _quarter_turn(b["R_allo"][i], A)  # the crop was turned by k quarter turns
         turned += k != 0
         rgb = np.rot90(b["rgb"][i], k).astype(int)
         mask = np.rot90(b["mask_visib"][i], k) > 0
@@ -449,8 +453,7 @@ def test_pe_turns_turns_the_pe_map_with_the_crop(models):
     n_turned = 0
     for i in range(8):
         R_allo_true = np.asarray(G.egocentric_to_allocentric(plain["R"][i], plain["t"][i]))
-        D = plain["R_allo"][i] @ R_allo_true.T
-        k = int(np.round(np.arctan2(D[1, 0], D[0, 0]) / (np.pi / 2))) % 4
+        k = _quarter_turn(plain["R_allo"][i], R_allo_true)
         np.testing.assert_allclose(turned["pe"][i], G.turn_pe(plain["pe"][i], k), atol=1e-6)
         n_turned += k != 0
         if k:
@@ -491,8 +494,7 @@ def test_clean_view_is_the_visible_target_before_colour_augmentation(models):
     np.testing.assert_array_equal(a["mask_visib"].shape, b["mask_visib"].shape)
     turned = changed = 0
     for i in range(8):
-        D = a["R_allo"][i] @ b["R_allo"][i].T
-        k = int(np.round(np.arctan2(D[1, 0], D[0, 0]) / (np.pi / 2))) % 4
+        k = _quarter_turn(a["R_allo"][i], b["R_allo"][i])
         turned += k != 0
         # the augmented batch's view is the plain batch's turned by the same quarter turns
         np.testing.assert_array_equal(a["view"][i], np.rot90(b["view"][i], -k))
@@ -535,8 +537,7 @@ def test_colour_p_sets_how_often_crops_get_the_colour_augmentation(models):
             b = s.batch(2)
         changed = 0
         for i in range(8):
-            D = b["R_allo"][i] @ plain["R_allo"][i].T  # Rz(90k): the crop was turned by k
-            k = int(np.round(np.arctan2(D[1, 0], D[0, 0]) / (np.pi / 2))) % 4
+            k = _quarter_turn(b["R_allo"][i], plain["R_allo"][i])  # the crop was turned by k
             changed += not np.array_equal(b["rgb"][i], np.rot90(plain["rgb"][i], -k))
         assert want_changed[0] <= changed <= want_changed[1], (p, changed)
     with pytest.raises(ValueError, match="colour_p"):
