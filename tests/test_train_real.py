@@ -353,6 +353,22 @@ def test_init_from_starts_a_run_from_another_models_object_independent_parameter
         np.testing.assert_array_equal(m[k], f[k])
     assert any(not np.array_equal(s[k], f[k]) for k in moved.copied)  # the source has trained: a real change
 
+    # a source trained on the run's very objects (ids and order) gives every array: a fine-tune;
+    # the same objects in another order keep the per-object arrays fresh
+    mcfg2 = tiny((2, 3), 2).model
+    fresh2 = init(jax.random.PRNGKey(5), mcfg2)
+    same = transfer_params(fresh2, mcfg2, str(src), obj_ids=(2, 3))
+    assert same.same_objects and "per-object arrays copied too" in same.summary()
+    m2 = flatten_with_paths(same.params, "params")
+    assert set(same.copied) == set(m2)
+    for k in m2:
+        np.testing.assert_array_equal(m2[k], s[k])
+    other = transfer_params(fresh2, mcfg2, str(src), obj_ids=(3, 2))
+    assert not other.same_objects and set(other.per_object) == set(moved.per_object)
+    f2 = flatten_with_paths(fresh2, "params")
+    for k in other.per_object:
+        np.testing.assert_array_equal(flatten_with_paths(other.params, "params")[k], f2[k])
+
     run = tmp_path / "obj1"
     train(tiny((ASYM_OBJ,), 2, init_from=str(src)), models_dir, run, progress=False, verbose=True, workers=0)
     assert "init_from: " in capsys.readouterr().out

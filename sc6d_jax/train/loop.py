@@ -427,7 +427,7 @@ def train(
             if cfg.init_from is not None:
                 from sc6d_jax.train.transfer import transfer_params
 
-                moved = transfer_params(params, cfg.model, cfg.init_from, model_fns.init)
+                moved = transfer_params(params, cfg.model, cfg.init_from, model_fns.init, obj_ids=cfg.stream.obj_ids)
                 params = moved.params
                 init_source = moved.source
                 if verbose and pidx == 0:

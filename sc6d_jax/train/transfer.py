@@ -7,14 +7,18 @@ parameter array of the new model whose shape does not depend on the number of ob
 backbone, the shared decoder, the pose decoder and its heads, the SO(3) encoder's shared
 layers) starts from the source's array of the same name and shape; the arrays that belong to
 objects (their decoder embeddings, the SO(3) encoder's output layers, any per-object decoder
-or head) start as a fresh run's, since the new run's objects are others. The copied and the
-fresh arrays are listed, so that what carried over is on record.
+or head) start as a fresh run's, since the new run's objects are others. A source trained on
+the very objects of the new run (the same object ids in the same order, e.g. ``builtin`` for a run
+on the built-in objects) gives its per-object arrays too: the run fine-tunes it. The copied and
+the fresh arrays are listed, so that what carried over is on record.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -34,9 +38,12 @@ class Transfer:
     Attributes:
         params: the new model's parameters (numpy pytree).
         copied: names of the arrays taken from the source (checkpoint names, ``params/backbone/...``).
-        per_object: names of the arrays that belong to objects (kept fresh).
+        per_object: names of the arrays that belong to objects (kept fresh, or copied too when
+            ``same_objects``).
         unmatched: names of the object-independent arrays the source has not in that shape (kept fresh).
         source: the checkpoint directory the parameters came from.
+        same_objects: the source was trained on the run's objects (ids and order), so its
+            per-object arrays were copied as well.
     """
 
     params: Any
@@ -44,13 +51,16 @@ class Transfer:
     per_object: tuple[str, ...]
     unmatched: tuple[str, ...]
     source: str
+    same_objects: bool = False
 
     def summary(self) -> str:
         """One line: how many arrays and scalars came from the source, and what stayed fresh."""
         sizes = {k: int(np.size(a)) for k, a in flatten_with_paths(self.params, PREFIX).items()}
         n_copied = sum(sizes[k] for k in self.copied)
+        fresh = ("none (the source's objects are the run's: per-object arrays copied too)" if self.same_objects
+                 else f"{len(self.per_object)} per-object")
         return (f"{len(self.copied)} of {len(sizes)} parameter arrays ({n_copied:,} of {sum(sizes.values()):,} scalars) "
-                f"from {self.source}; fresh: {len(self.per_object)} per-object"
+                f"from {self.source}; fresh: {fresh}"
                 + (f", {len(self.unmatched)} without a match ({', '.join(self.unmatched[:4])}"
                    f"{', ...' if len(self.unmatched) > 4 else ''})" if self.unmatched else ""))
 
@@ -66,16 +76,19 @@ def per_object_names(flat: dict[str, np.ndarray], init_fn: Any, model_cfg: Any) 
     return {k for k in flat if flat[k].shape != more[k].shape}
 
 
-def transfer_params(params: Any, model_cfg: Any, source: str | os.PathLike, init_fn: Any | None = None) -> Transfer:
+def transfer_params(params: Any, model_cfg: Any, source: str | os.PathLike, init_fn: Any | None = None,
+                    obj_ids: Sequence[int] | None = None) -> Transfer:
     """``params`` (a fresh run's) with every object-independent array taken from ``source``.
 
     ``source``: a run directory, a checkpoint directory or a shipped model's name; its newest
-    checkpoint is read (its moving average when it keeps one, as inference does). Raises
+    checkpoint is read (its moving average when it keeps one, as inference does). ``obj_ids``:
+    the run's objects, in the model's order; when the source's checkpoint names the same ids in
+    the same order, its per-object arrays are copied too (fine-tuning). Raises
     FileNotFoundError when the source is none of these, ValueError when not one array of the
     backbone fits (a source of another architecture: crop size, width or backbone).
     """
     from sc6d_jax import pretrained
-    from sc6d_jax.checkpoint import find_checkpoint, load_checkpoint, unflatten_like
+    from sc6d_jax.checkpoint import find_checkpoint, load_checkpoint, read_meta, unflatten_like
 
     if init_fn is None:
         from sc6d_jax.model import init as init_fn
@@ -83,9 +96,10 @@ def transfer_params(params: Any, model_cfg: Any, source: str | os.PathLike, init
     src_flat = flatten_with_paths(load_checkpoint(ckpt)[0], PREFIX)
     own = flatten_with_paths(params, PREFIX)
     per_obj = per_object_names(own, init_fn, model_cfg)
+    same = obj_ids is not None and _source_obj_ids(read_meta(ckpt)) == tuple(int(i) for i in obj_ids)
     out, copied, fresh_obj, unmatched = {}, [], [], []
     for name, leaf in own.items():
-        if name in per_obj:
+        if name in per_obj and not same:
             fresh_obj.append(name)
             out[name] = leaf
         elif name in src_flat and src_flat[name].shape == leaf.shape:
@@ -98,4 +112,16 @@ def transfer_params(params: Any, model_cfg: Any, source: str | os.PathLike, init
         raise ValueError(f"init_from {source}: no backbone array of {ckpt} fits this model "
                          f"(another crop size, width or backbone?); unmatched: {', '.join(unmatched[:4])}")
     return Transfer(unflatten_like(params, out, PREFIX, str(ckpt)), tuple(copied), tuple(fresh_obj), tuple(unmatched),
-                    str(ckpt))
+                    str(ckpt), same)
+
+
+def _source_obj_ids(meta: dict[str, Any]) -> tuple[int, ...] | None:
+    """The object ids a checkpoint's model was trained on, in its order (None when not recorded)."""
+    cfg = meta.get("config")
+    if isinstance(cfg, str):
+        try:
+            cfg = json.loads(cfg)
+        except json.JSONDecodeError:
+            return None
+    ids = ((cfg or {}).get("stream") or {}).get("obj_ids") if isinstance(cfg, dict) else None
+    return tuple(int(i) for i in ids) if ids else None
