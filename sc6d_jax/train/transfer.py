@@ -38,8 +38,8 @@ class Transfer:
     Attributes:
         params: the new model's parameters (numpy pytree).
         copied: names of the arrays taken from the source (checkpoint names, ``params/backbone/...``).
-        per_object: names of the arrays that belong to objects (kept fresh, or copied too when
-            ``same_objects``).
+        per_object: names of the arrays that belong to objects and were kept fresh (none when
+            ``same_objects``: they are then among ``copied``).
         unmatched: names of the object-independent arrays the source has not in that shape (kept fresh).
         source: the checkpoint directory the parameters came from.
         same_objects: the source was trained on the run's objects (ids and order), so its
