@@ -16,7 +16,6 @@ the fresh arrays are listed, so that what carried over is on record.
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -88,15 +87,17 @@ def transfer_params(params: Any, model_cfg: Any, source: str | os.PathLike, init
     backbone fits (a source of another architecture: crop size, width or backbone).
     """
     from sc6d_jax import pretrained
-    from sc6d_jax.checkpoint import find_checkpoint, load_checkpoint, read_meta, unflatten_like
+    from sc6d_jax.checkpoint import find_checkpoint, load_checkpoint, unflatten_like
 
     if init_fn is None:
         from sc6d_jax.model import init as init_fn
     ckpt = find_checkpoint(pretrained.check_run(source))
-    src_flat = flatten_with_paths(load_checkpoint(ckpt)[0], PREFIX)
+    src_params, src_cfg = load_checkpoint(ckpt)
+    src_flat = flatten_with_paths(src_params, PREFIX)
     own = flatten_with_paths(params, PREFIX)
     per_obj = per_object_names(own, init_fn, model_cfg)
-    same = obj_ids is not None and _source_obj_ids(read_meta(ckpt)) == tuple(int(i) for i in obj_ids)
+    src_ids = src_cfg.stream.obj_ids
+    same = obj_ids is not None and src_ids is not None and tuple(src_ids) == tuple(int(i) for i in obj_ids)
     out, copied, fresh_obj, unmatched = {}, [], [], []
     for name, leaf in own.items():
         if name in per_obj and not same:
@@ -114,14 +115,3 @@ def transfer_params(params: Any, model_cfg: Any, source: str | os.PathLike, init
     return Transfer(unflatten_like(params, out, PREFIX, str(ckpt)), tuple(copied), tuple(fresh_obj), tuple(unmatched),
                     str(ckpt), same)
 
-
-def _source_obj_ids(meta: dict[str, Any]) -> tuple[int, ...] | None:
-    """The object ids a checkpoint's model was trained on, in its order (None when not recorded)."""
-    cfg = meta.get("config")
-    if isinstance(cfg, str):
-        try:
-            cfg = json.loads(cfg)
-        except json.JSONDecodeError:
-            return None
-    ids = ((cfg or {}).get("stream") or {}).get("obj_ids") if isinstance(cfg, dict) else None
-    return tuple(int(i) for i in ids) if ids else None
