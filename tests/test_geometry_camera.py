@@ -187,6 +187,47 @@ def test_warp_crop_pixel_convention_and_dtypes():
     np.testing.assert_array_equal(out[0, ..., 4:], g.warp_crop(rgb[..., 4:], T, 16))
 
 
+def test_supersampled_crops_average_samples_spread_over_each_pixel():
+    """``warp_crop(..., supersample=f)``: each crop pixel is the mean of f x f samples placed
+    symmetrically about the pixel's centre, so a linear ramp (bilinear sampling is exact on
+    it) gives exactly the one-sample crop, while a step edge falling inside a pixel gives the
+    covered fraction instead of 0 or 1; ``area_downsample`` is the block mean and
+    ``supersample_transform`` keeps the crop's pixel centres where they were."""
+    W, H = 120, 100
+    x, y = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    ramp = (0.3 * x - 0.7 * y + 5.0).astype(np.float32)
+    T = np.asarray(g.crop_transform(jnp.array([61.3, 48.9]), jnp.array(70.0), 16))
+    one = g.warp_crop(ramp, T, 16)
+    for f in (2, 3, 4):
+        np.testing.assert_allclose(g.warp_crop(ramp, T, 16, supersample=f), one, atol=2e-3)
+        Tf = g.supersample_transform(T, f)
+        # crop pixel u's centre is the mean of its f fine pixels' centres
+        p = np.array([5.0, 7.0, 1.0])
+        fine = np.array([[f * 5 + i, f * 7 + j, 1.0] for i in range(f) for j in range(f)])
+        np.testing.assert_allclose(np.linalg.inv(Tf) @ fine.mean(0), np.linalg.inv(T) @ p, atol=1e-9)
+    # a vertical edge at image x = 60.0 (pixels 0..59 dark): one crop pixel per 70/16 image pixels
+    edge = (x >= 60).astype(np.float32)
+    T2 = np.asarray(g.crop_transform(jnp.array([60.0, 50.0]), jnp.array(64.0), 16))  # 4 image px per crop px
+    hard = g.warp_crop(edge, T2, 16)
+    soft = g.warp_crop(edge, T2, 16, supersample=4)
+    row_h, row_s = hard[8], soft[8]
+    assert set(np.round(row_s, 3)) - {0.0, 1.0}  # a pixel partly covered reads between
+    np.testing.assert_allclose(row_s.sum(), row_h.sum(), atol=1.0)  # the same area, spread
+    # block means; bool = majority; a wrong size names the problem
+    a = (2 * np.arange(16)).astype(np.uint8).reshape(4, 4)
+    np.testing.assert_array_equal(g.area_downsample(a, 2), [[5, 9], [21, 25]])
+    np.testing.assert_allclose(g.area_downsample(a.astype(np.float32), 2), [[5, 9], [21, 25]])
+    assert g.area_downsample(a, 1) is a
+    m = np.zeros((4, 4), bool)
+    m[:2, :1] = True
+    m[2:, 2:] = True
+    np.testing.assert_array_equal(g.area_downsample(m, 2), [[True, False], [False, True]])
+    with pytest.raises(ValueError, match="blocks"):
+        g.area_downsample(np.zeros((5, 4)), 2)
+    with pytest.raises(ValueError, match="supersample"):
+        g.warp_crop(ramp, T, 16, supersample=0)
+
+
 def test_z_bins():
     c = np.asarray(g.z_bin_centers(11, 0.5, 1.5))
     np.testing.assert_allclose(c, np.linspace(0.5, 1.5, 11), atol=1e-7)

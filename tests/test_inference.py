@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from sc6d_jax import Estimator
+from sc6d_jax.geometry import crop_transform, warp_crop
 from sc6d_jax.inference import load_exported, load_or_build_library, predict_crops, rotate_crops, rz90
 from sc6d_jax.inference._library import library_key
 
@@ -153,6 +154,14 @@ def test_crops_are_cut_with_the_models_crop_pad(est, scene):
     np.testing.assert_allclose(side2, 1.2 * boxes[:, 2:].max(axis=1), rtol=1e-5)
     np.testing.assert_allclose(center2, center)
     assert crops2.shape[1] == est.mcfg.crop_size
+    # model.crop_supersample: each crop pixel the mean of f x f samples, as the stream rendered them
+    crops1, _, _ = est.make_crops(image, boxes, len(boxes))
+    fine = copy.copy(est)
+    fine.mcfg = dataclasses.replace(est.mcfg, crop_supersample=4)
+    crops4, center4, side4 = fine.make_crops(image, boxes, len(boxes))
+    T = np.asarray(crop_transform(center4, side4, est.mcfg.crop_size))
+    np.testing.assert_array_equal(crops4, warp_crop(image, T, est.mcfg.crop_size, supersample=4))
+    assert crops4.shape == crops1.shape and np.any(crops4 != crops1)
 
 
 @pytest.mark.parametrize(
@@ -184,7 +193,7 @@ def test_export_round_trip(est, scene, tmp_path):
     image, K, boxes, ids = scene
     path = est.export(tmp_path / "predictor.npz")
     f = load_exported(path)
-    assert f.meta["obj_ids"] == list(OBJ_IDS) and f.meta["crop_pad"] == est.mcfg.crop_pad
+    assert f.meta["obj_ids"] == list(OBJ_IDS) and f.meta["crop_pad"] == est.mcfg.crop_pad and f.meta["crop_supersample"] == 1
     crops, center, side = est.make_crops(image, boxes, len(boxes))
     idx = est.obj_index(ids)
     Kb = np.broadcast_to(K, (len(boxes), 3, 3))

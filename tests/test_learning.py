@@ -109,6 +109,16 @@ def test_crop_pad_reaches_the_training_stream_and_the_validation_crops(models):
     for bad in ("0.9", "5"):
         with pytest.raises(ValueError, match="crop_pad"):
             apply_overrides(base, [f"model.crop_pad={bad}"])
+    # model.crop_supersample reaches both the same way (1, the default, passes nothing)
+    fine = apply_overrides(base, ["model.crop_supersample=2"])
+    assert fine.model.crop_supersample == 2 and stream_fields(fine, models, 0)["supersample"] == 2
+    assert "supersample" not in stream_fields(base, models, 0)
+    c = Validator(fine, models, n=8, lib_size=1000, batch=8)
+    np.testing.assert_allclose(c.data["t"], a.data["t"])
+    assert np.any(c.data["rgb"] != a.data["rgb"])
+    for bad in ("0", "9"):
+        with pytest.raises(ValueError, match="crop_supersample"):
+            apply_overrides(base, [f"model.crop_supersample={bad}"])
 
 
 def test_validator_matches_each_crop_against_its_own_objects_grid(models):

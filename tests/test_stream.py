@@ -542,3 +542,37 @@ def test_colour_p_sets_how_often_crops_get_the_colour_augmentation(models):
         assert want_changed[0] <= changed <= want_changed[1], (p, changed)
     with pytest.raises(ValueError, match="colour_p"):
         StreamConfig(str(models), colour_p=1.5)
+
+
+def test_supersampled_crops_are_block_means_of_a_crop_rendered_that_much_larger(models):
+    """``supersample=4``: the crop is rendered at 4x its side and averaged in 4x4 blocks, so it
+    is the block mean of the one-sample crop of side 4S cut from the same box (the same K_B up to
+    the pixel-centre shift; a render offset by half a fine pixel would not match); the labels
+    are those of the one-sample stream at S (same poses, boxes, K_B), and the outline has the
+    grey levels of partly covered pixels that one sample per pixel never gives."""
+    S = 48
+    kw = dict(batch_size=6, workers=0, seed=5, augment=False, occlusion=0.0,
+              box_shift=0.0, box_scale=(1.0, 1.0), background="plain")
+    with CropStream(StreamConfig(str(models), crop_size=S, **kw)) as s:
+        one = s.batch(0)
+    with CropStream(StreamConfig(str(models), crop_size=S, supersample=4, **kw)) as s:
+        fine = s.batch(0)
+    with CropStream(StreamConfig(str(models), crop_size=4 * S, **kw)) as s:
+        big = s.batch(0)
+    for k in ("R", "t", "K", "K_B", "delta_xy", "delta_z", "center", "side", "obj_id", "pe"):
+        np.testing.assert_array_equal(fine[k], one[k])
+    np.testing.assert_array_equal(big["t"], one["t"])
+    assert fine["rgb"].shape == one["rgb"].shape and fine["rgb"].dtype == np.uint8
+    for rgb4, m4, rgb_big, m_big in zip(fine["rgb"], fine["mask_visib"], big["rgb"], big["mask_visib"]):
+        blocks = G.area_downsample(rgb_big, 4).astype(int)
+        assert np.abs(rgb4.astype(int) - blocks).max() <= 2  # rasteriser rounding at the edges
+        assert np.mean(rgb4 != blocks) < 0.02
+        np.testing.assert_array_equal(m4, G.area_downsample(m_big.astype(bool), 4))
+    # between-levels on the outline: colours that no pixel of the one-sample crop has
+    def colours(r):
+        return {tuple(c) for c in r.reshape(-1, 3)}
+    assert all(len(colours(r4) - colours(r1)) > 10 for r1, r4 in zip(one["rgb"], fine["rgb"]))
+    with pytest.raises(ValueError, match="supersample"):
+        StreamConfig(str(models), supersample=0)
+    with pytest.raises(ValueError, match="supersample"):
+        StreamConfig(str(models), supersample=2, dense=True)

@@ -1,13 +1,23 @@
 """Geometry core of sc6d-jax: rotations, SO(3) grids, crops, translation encoding, allocentric poses.
 
 Pure ``jax.numpy`` functions, batched over leading axes, dtype-preserving and jit-able (except
-the numpy helpers ``fibonacci_sphere``, ``so3_grid``, ``warp_crop``, ``nearest_rotation`` and
-``covering_radius``). ``validate_*`` raise ``ValueError`` naming the problem; the core
+the numpy helpers ``fibonacci_sphere``, ``so3_grid``, ``warp_crop``, ``supersample_transform``,
+``area_downsample``, ``nearest_rotation`` and ``covering_radius``). ``validate_*`` raise ``ValueError`` naming the problem; the core
 functions run them automatically whenever their inputs are concrete (outside jit).
 """
 
 from sc6d_jax.geometry._allocentric import allocentric_to_egocentric, egocentric_to_allocentric, ray_rotation
-from sc6d_jax.geometry._crops import crop_box, crop_intrinsics, crop_transform, jitter_box, pe_map, turn_pe, warp_crop
+from sc6d_jax.geometry._crops import (
+    area_downsample,
+    crop_box,
+    crop_intrinsics,
+    crop_transform,
+    jitter_box,
+    pe_map,
+    supersample_transform,
+    turn_pe,
+    warp_crop,
+)
 from sc6d_jax.geometry._rotations import (
     axis_angle_to_matrix,
     geodesic_angle,
@@ -85,6 +95,8 @@ __all__ = [
     "validate_translation",
     "viewpoint_rotation",
     "warp_crop",
+    "supersample_transform",
+    "area_downsample",
     "z_bin_centers",
     "z_bin_label",
     "z_expectation",

@@ -175,20 +175,77 @@ def turn_pe(pe: ArrayLike, k: int) -> Array:
 _CV_DTYPES = (np.uint8, np.uint16, np.int16, np.float32, np.float64)
 
 
+def supersample_transform(T: np.ndarray, factor: int) -> np.ndarray:
+    """``T`` (image -> crop of ``S`` pixels) turned into image -> crop of ``factor * S`` pixels
+    whose ``factor x factor`` blocks are the ``S``-crop's pixels (numpy, any leading axes).
+
+    Pixel centres: crop pixel ``u`` covers ``[u - 0.5, u + 0.5]``, i.e. fine pixels
+    ``factor u .. factor u + factor - 1``, whose centre is ``factor u + (factor - 1)/2``; so the
+    fine crop's ``K`` is ``A @ T @ K`` with ``A = [[f, 0, (f-1)/2], [0, f, (f-1)/2], [0, 0, 1]]``,
+    and :func:`area_downsample` of a render through it is the ``S``-crop with ``factor^2``
+    samples per pixel."""
+    f = int(factor)
+    if f < 1:
+        raise ValueError(f"factor must be a positive integer, got {factor!r}")
+    A = np.array([[f, 0.0, (f - 1) / 2], [0.0, f, (f - 1) / 2], [0.0, 0.0, 1.0]])
+    return A @ np.asarray(T, np.float64)
+
+
+def area_downsample(img: np.ndarray, factor: int) -> np.ndarray:
+    """The mean of each ``factor x factor`` block of an ``(f S, f S[, C])`` image (same dtype,
+    rounded for integers): the inverse of :func:`supersample_transform`'s refinement. Bool
+    images give the block's majority (a pixel at least half covered). ``factor`` 1 returns the
+    image itself."""
+    f = int(factor)
+    if f < 1:
+        raise ValueError(f"factor must be a positive integer, got {factor!r}")
+    if f == 1:
+        return img
+    h, w = img.shape[:2]
+    if h % f or w % f:
+        raise ValueError(f"image of {h}x{w} pixels is not a whole number of {f}x{f} blocks")
+    if img.dtype == np.bool_:
+        return area_downsample(img.astype(np.float32), f) >= 0.5
+    if img.dtype in (np.uint8, np.uint16, np.float32, np.float64) and (img.ndim == 2 or img.shape[2] <= 4):
+        # OpenCV's area resize at an integer factor is the block mean (integers rounded)
+        out = cv2.resize(np.ascontiguousarray(img), (w // f, h // f), interpolation=cv2.INTER_AREA)
+        return out[..., None] if img.ndim == 3 and out.ndim == 2 else out
+    blocks = img.reshape(h // f, f, w // f, f, *img.shape[2:]).astype(np.float64).mean(axis=(1, 3))
+    if np.issubdtype(img.dtype, np.integer):
+        info = np.iinfo(img.dtype)
+        return np.clip(np.floor(blocks + 0.5), info.min, info.max).astype(img.dtype)
+    return blocks.astype(img.dtype)
+
+
 def warp_crop(
     image: np.ndarray,
     T: ArrayLike,
     out_size: int,
     interpolation: Literal["linear", "nearest"] = "linear",
     border_value: float = 0.0,
+    supersample: int = 1,
 ) -> np.ndarray:
     """Crop an image with ``cv2.warpAffine``: ``out[v, u] = image(T^-1 (u, v))`` (numpy, not jit).
 
     ``image`` is ``HxW`` or ``HxWxC`` (any C; bool masks allowed); use ``"linear"`` for RGB and
     ``"nearest"`` for masks. ``T`` is ``(3, 3)`` or ``(N, 3, 3)`` (then the result gets a
     leading ``N`` axis). Pixels from outside the image get ``border_value``.
+
+    ``supersample`` ``f > 1``: each crop pixel is the mean of ``f x f`` samples spread over its
+    area (the crop is cut at ``f * out_size`` through :func:`supersample_transform` and
+    :func:`area_downsample`-d), against the aliasing of a crop far smaller than its box in the
+    image; 1 = one sample at each pixel's centre.
     """
     out_size = validate_size(out_size, "out_size")
+    if not isinstance(supersample, (int, np.integer)) or isinstance(supersample, bool) or supersample < 1:
+        raise ValueError(f"supersample must be a positive integer, got {supersample!r}")
+    if supersample > 1:
+        Tn = np.asarray(T, dtype=np.float64)
+        fine = warp_crop(image, supersample_transform(Tn, supersample), out_size * int(supersample),
+                         interpolation, border_value)
+        if Tn.ndim == 3:
+            return np.stack([area_downsample(c, int(supersample)) for c in fine])
+        return area_downsample(fine, int(supersample))
     img = np.asarray(image)
     if img.ndim not in (2, 3) or img.shape[0] == 0 or img.shape[1] == 0:
         raise ValueError(f"image must be HxW or HxWxC, got shape {img.shape}")

@@ -5,7 +5,8 @@
 
 Crops are made exactly as the training stream makes them (:mod:`sc6d_jax.geometry`: square
 box of side ``crop_pad * max(w, h)`` around the box centre, with the model's ``crop_pad``, 1.5
-by default; ``warp_crop`` bilinear with zero border, PE map from K and T). The box count is padded to the next power of two so that calls with the
+by default; ``warp_crop`` bilinear with zero border, each pixel the mean of the model's
+``crop_supersample``-squared samples; PE map from K and T). The box count is padded to the next power of two so that calls with the
 same bucket reuse one compiled predictor. Input is validated before anything is compiled.
 """
 
@@ -155,7 +156,8 @@ class Estimator:
         b = np.concatenate([boxes, np.repeat(boxes[:1], n_pad - len(boxes), axis=0)]).astype(np.float32)
         center, side = crop_box(b, pad=self.mcfg.crop_pad)
         T = crop_transform(center, side, S)
-        crops = warp_crop(image, np.asarray(T), S, interpolation="linear")
+        crops = warp_crop(image, np.asarray(T), S, interpolation="linear",
+                          supersample=getattr(self.mcfg, "crop_supersample", 1))
         return crops, np.asarray(center, np.float32), np.asarray(side, np.float32)
 
     def crops_fn(self, batch: int, tta: bool = False, top_k: int = 1, refine: bool = False,

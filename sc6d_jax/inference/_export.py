@@ -4,7 +4,8 @@ The file (``.npz``) holds the serialised StableHLO module and its
 array arguments: the model parameters as a flat list and the packed rotation library. The
 exported function maps a batch of crops (uint8 ``(B,S,S,3)``, K ``(B,3,3)``, crop centre
 ``(B,2)``, side ``(B,)`` (``meta["crop_pad"]`` times the box's longer side, as the model was
-trained), object index ``(B,)``) to the pose dict of
+trained; cut with ``meta["crop_supersample"]`` samples per pixel along each axis, the ``supersample``
+of ``sc6d_jax.geometry.warp_crop``), object index ``(B,)``) to the pose dict of
 :func:`sc6d_jax.inference.predict_crops`.
 
 The batch dimension is symbolic where the network allows it. Per-object decoders (per-sample
@@ -66,7 +67,8 @@ def export_predictor(est: Any, path: str | os.PathLike, tta: bool = False, top_k
     except NotImplementedError:  # per-sample kernels: the batch becomes a conv group count
         exp = export.export(jax.jit(fn))(*args_for(FIXED_BATCH))
         fixed = FIXED_BATCH
-    meta = {"format": EXPORT_FORMAT, "crop_size": S, "crop_pad": est.mcfg.crop_pad, "obj_ids": est.obj_ids, "tta": tta, "tta_mode": tta_mode, "top_k": top_k,
+    meta = {"format": EXPORT_FORMAT, "crop_size": S, "crop_pad": est.mcfg.crop_pad,
+            "crop_supersample": getattr(est.mcfg, "crop_supersample", 1), "obj_ids": est.obj_ids, "tta": tta, "tta_mode": tta_mode, "top_k": top_k,
             "n_params": len(leaves), "library_key": est.library.key, "fixed_batch": fixed}
     arrays = {f"p{i:05d}": np.asarray(x) for i, x in enumerate(leaves)}
     arrays.update(blocks=np.asarray(blocks), lib_R=np.asarray(est._lib_R),

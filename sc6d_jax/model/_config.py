@@ -143,6 +143,12 @@ class ModelConfig:
       stream and the estimator both cut ``crop_pad * max(w, h)`` around the box centre. With
       exact boxes the object spans ``crop_size / crop_pad`` pixels; 1.2 gives it 1.56x the
       pixels of 1.5 at the same network cost. Must be >= 1 (the box fits).
+    - crop_supersample: samples per crop pixel along each axis, averaged (1 = one sample at the
+      pixel's centre, as before): the training stream renders its crops at this many times
+      ``crop_size`` and averages blocks (``sc6d_jax.data.StreamConfig.supersample``), and the
+      estimator cuts its crops the same way (``sc6d_jax.geometry.warp_crop``'s ``supersample``),
+      so the object's outline falls between pixels as grey levels instead of a staircase.
+      The network's cost is unchanged; the stream renders ``crop_supersample^2`` times the pixels.
     """
 
     n_objects: int = 1
@@ -184,6 +190,7 @@ class ModelConfig:
     xy_rot: bool = False
     xy_vote_from: str = "feat"
     crop_pad: float = 1.5
+    crop_supersample: int = 1
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:
@@ -196,6 +203,9 @@ class ModelConfig:
             raise ValueError(f"crop_size must be a multiple of 16 and >= 32, got {self.crop_size}")
         if not (isinstance(self.crop_pad, (int, float)) and 1.0 <= self.crop_pad <= 4.0):
             raise ValueError(f"crop_pad must be a number in [1, 4], got {self.crop_pad!r}")
+        if (not isinstance(self.crop_supersample, int) or isinstance(self.crop_supersample, bool)
+                or not 1 <= self.crop_supersample <= 8):
+            raise ValueError(f"crop_supersample must be an integer in [1, 8], got {self.crop_supersample!r}")
         if self.stem_kernel < 1 or self.stem_kernel % 2 == 0:
             raise ValueError(f"stem_kernel must be odd and positive, got {self.stem_kernel}")
         for name in ("n_objects", "width", "feat_dim", "emb_dim", "n_z_bins", "pose_width",

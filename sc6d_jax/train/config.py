@@ -278,12 +278,16 @@ class TrainConfig:
     def crop_fields(self) -> dict[str, Any]:
         """``sc6d_jax.data.StreamConfig`` keywords that decide the run's scenes and how its crops are
         cut: the stream's set fields (:meth:`StreamSettings.set_scene_fields`) and the model's crop
-        padding where it is not the stream's default 1.5 (``model.crop_pad``). The training stream
+        padding where it is not the stream's default 1.5 (``model.crop_pad``) and its samples per
+        pixel where not 1 (``model.crop_supersample``). The training stream
         and the validation crops both take them."""
         fields = self.stream.set_scene_fields()
         pad = getattr(self.model, "crop_pad", 1.5)
         if pad != 1.5:
             fields["pad"] = float(pad)
+        supersample = getattr(self.model, "crop_supersample", 1)
+        if supersample != 1:
+            fields["supersample"] = int(supersample)
         return fields
 
     def __post_init__(self) -> None:
